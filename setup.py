@@ -1,0 +1,53 @@
+"""ament_python package brepose_ros: builds with colcon and installs with pip.
+
+The ROS 2 wheels are an optional extra (``pip install .[ros]``) so that a user with an apt
+ROS install never gets a second rclpy.
+"""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "brepose_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "opencv-python-headless>=4.8,<5",
+        "cadquery>=2.4",
+        "rosbags>=0.10",
+        "pyyaml>=6",
+        "tqdm>=4.60",
+        "matplotlib>=3.7",
+    ],
+    extras_require={
+        "ros": [
+            "ros-kilted-rclpy",
+            "ros-kilted-rmw-fastrtps-cpp",
+            "ros-kilted-sensor-msgs",
+            "ros-kilted-geometry-msgs",
+            "ros-kilted-diagnostic-msgs",
+            "ros-kilted-visualization-msgs",
+        ],
+        "test": ["pytest>=7"],
+    },
+    zip_safe=True,
+    maintainer="brepose_ros developers",
+    maintainer_email="dev@brepose.invalid",
+    description="6-DoF pose of texture-less parts from a STEP model and one image (ROS 2 node).",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "brepose-compile = brepose_ros.cli.compile:main",
+        ],
+    },
+)
