@@ -48,6 +48,11 @@ setup(
     entry_points={
         "console_scripts": [
             "brepose-compile = brepose_ros.cli.compile:main",
+            "brepose-render = brepose_ros.cli.render:main",
+            "brepose-bag = brepose_ros.cli.bag:main",
+            "brepose-estimate = brepose_ros.cli.estimate:main",
+            "brepose-eval = brepose_ros.cli.evaluate:main",
+            "estimator = brepose_ros.node:main",
         ],
     },
 )

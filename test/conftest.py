@@ -1,0 +1,38 @@
+"""Shared fixtures: the bundled sample part and the real data beside the clone."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from brepose_ros import shapes
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """../shared/data (real STEP parts and LM-O photos); tests that need it skip without it."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip("../shared/data is not beside this clone")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def builtin_step(tmp_path_factory):
+    """Factory: the STEP file of a built-in part, exported once per session."""
+    folder = tmp_path_factory.mktemp("builtin_steps")
+    cache: dict[str, Path] = {}
+
+    def make(name: str) -> Path:
+        if name not in cache:
+            cache[name] = shapes.export_step(name, folder / f"{name}.step")
+        return cache[name]
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def sample_step(builtin_step) -> Path:
+    return builtin_step("sample_bracket")
