@@ -1,0 +1,127 @@
+"""Every tunable number of the online pipeline, typed and documented in one place.
+
+Each field carries its documentation in ``metadata["doc"]``; the ROS node declares one
+parameter per field from it (``matching.empty_coefficient`` etc.) and ``config/estimator.yaml``
+holds the same defaults for users to copy. Groups follow the pipeline stages.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .image_edges import EdgeParams
+
+
+def doc(text: str, default: Any) -> Any:
+    """A dataclass field with its default and documentation."""
+    return field(default=default, metadata={"doc": text})
+
+
+@dataclass(frozen=True)
+class MatchParams:
+    """Tetrad metric space and bipartite matching (seed paper sections 3 and 6)."""
+
+    weight_length: float = doc("weight of the length difference in the tetrad distance", 1.0)
+    weight_midpoint: float = doc("weight of the midpoint difference (length and angle of the midpoint)", 1.0)
+    weight_orientation: float = doc("weight of the orientation difference (angle of the perpendicular), radians", 0.5)
+    weight_perpendicular: float = doc("weight of the perpendicular foot-point difference (length and angle of the perpendicular)", 0.5)
+    empty_coefficient: float = doc("distance of an empty element, as a share of the largest pair distance; pairs farther than twice this are left unmatched", 0.25)
+    nearest_threshold: float = doc("pairs closer than this share of the empty distance form the nearest group", 0.5)
+    shortlist_size: int = doc("views kept by the rotation- and scale-invariant pre-filter for Kuhn-Munkres", 48)
+    rotation_candidates: int = doc("in-plane rotations tried per shortlisted view (peaks of the orientation correlation)", 4)
+    max_model_segments: int = doc("longest view segments used in matching", 60)
+    max_image_segments: int = doc("longest image segments used in matching per region", 90)
+    max_regions: int = doc("candidate image regions (whole image, edge clusters) matched per image", 6)
+    hypotheses: int = doc("best (region, view, rotation) hypotheses turned into poses and verified", 6)
+    workers: int = doc("worker threads that share the views of one image", 2)
+
+
+@dataclass(frozen=True)
+class PoseParams:
+    """Metric pose, refinement and the found / not-found decision."""
+
+    refine_iterations: int = doc("re-match and refine rounds; 0 keeps the first pose from the view", 4)
+    inlier_pixels: float = doc("distance of a projected model edge to an image edge still counted as found, pixels", 3.0)
+    min_score: float = doc("a pose with a lower score is reported as not found", 0.45)
+    warn_error_ratio: float = doc("diagnostics turn WARN above this error ratio", 0.5)
+
+
+@dataclass(frozen=True)
+class EstimatorParams:
+    edges: EdgeParams = field(default_factory=EdgeParams)
+    matching: MatchParams = field(default_factory=MatchParams)
+    pose: PoseParams = field(default_factory=PoseParams)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict | None) -> "EstimatorParams":
+        """Nested dict (as in the YAML file) to params; unknown keys are an error, not ignored."""
+        data = dict(data or {})
+        groups = {f.name: f.type for f in dataclasses.fields(cls)}
+        unknown = set(data) - set(groups)
+        if unknown:
+            raise ValueError(f"unknown parameter group(s): {', '.join(sorted(unknown))}")
+        values = {}
+        for group in dataclasses.fields(cls):
+            default = getattr(cls(), group.name)
+            overrides = data.get(group.name) or {}
+            if not isinstance(overrides, dict):
+                raise ValueError(f"parameter group {group.name!r} must be a mapping")
+            values[group.name] = replace_checked(default, overrides, group.name)
+        return cls(**values)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "EstimatorParams":
+        try:
+            data = yaml.safe_load(Path(path).read_text())
+        except FileNotFoundError:
+            raise ValueError(f"parameter file {path} does not exist") from None
+        except yaml.YAMLError as exc:
+            raise ValueError(f"parameter file {path} is not valid YAML: {exc}") from None
+        return cls.from_dict(data)
+
+    def flat(self) -> dict[str, Any]:
+        """``{"matching.empty_coefficient": 0.25, ...}``: the names of the ROS parameters."""
+        return {f"{g}.{k}": v for g, d in self.to_dict().items() for k, v in d.items()}
+
+    def with_flat(self, updates: dict[str, Any]) -> "EstimatorParams":
+        nested: dict[str, dict] = {}
+        for name, value in updates.items():
+            group, _, key = name.partition(".")
+            nested.setdefault(group, {})[key] = value
+        merged = {g: {**d, **nested.get(g, {})} for g, d in self.to_dict().items()}
+        extra = set(nested) - set(merged)
+        if extra:
+            raise ValueError(f"unknown parameter group(s): {', '.join(sorted(extra))}")
+        return EstimatorParams.from_dict(merged)
+
+
+def replace_checked(instance, overrides: dict, group: str):
+    """dataclasses.replace with unknown names refused and values cast to the field's type."""
+    fields = {f.name: f for f in dataclasses.fields(instance)}
+    unknown = set(overrides) - set(fields)
+    if unknown:
+        raise ValueError(f"unknown parameter(s) in {group}: {', '.join(sorted(unknown))}")
+    cast = {}
+    for name, value in overrides.items():
+        kind = type(getattr(instance, name))
+        try:
+            cast[name] = kind(value) if kind in (int, float, bool, str) else value
+        except (TypeError, ValueError):
+            raise ValueError(f"{group}.{name} must be {kind.__name__}, got {value!r}") from None
+    return dataclasses.replace(instance, **cast)
+
+
+def field_docs() -> dict[str, str]:
+    """Documentation of every flat parameter name."""
+    out = {}
+    for group in dataclasses.fields(EstimatorParams):
+        for f in dataclasses.fields(getattr(EstimatorParams(), group.name)):
+            out[f"{group.name}.{f.name}"] = f.metadata.get("doc", "")
+    return out
