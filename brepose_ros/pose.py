@@ -1,0 +1,203 @@
+"""Stage 5: from a matched view to a metric 6-DoF pose, and its refinement.
+
+First pose (what the paper leaves out). A view is an orthographic picture of the part seen
+along one direction. An off-centre part is not seen along the optical axis but along the
+ray through it, so the image edges of a region are first turned onto a *virtual camera*
+whose optical axis is that ray (a pure rotation of the rays, exact for a pinhole camera).
+There the part is centred and its image is, to first order, the view scaled by 1/depth.
+The similarity (scale k, rotation phi, shift tau) that maps the view's orthographic
+coordinates (metres) onto the virtual image (normalised coordinates) then gives
+
+    R = R_align @ Rz(phi) @ R_view,    t = R_align @ ([tau, 1] / k) - R @ c0
+
+with c0 the model centre: depth comes from scale, not from a sampled camera distance.
+
+Refinement. Every matched view segment carries its two 3D end points on the model; every
+image segment is a line. A robust least-squares (soft-L1) over the 6 pose parameters pulls
+the projected end points onto their image lines. Between rounds the visible edges of the
+graph view nearest to the current pose are projected again and re-associated with the
+image lines, with a tolerance that shrinks round by round.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from .camera import Camera
+from .geometry import rot_z, rotation_between
+
+ORIENTATION_SUPPORT_BINS = 8
+
+
+def undistort_segments(segments_px: np.ndarray, camera: Camera) -> np.ndarray:
+    """Image segments in normalised camera coordinates ((u - cx) / fx, (v - cy) / fy)."""
+    pts = np.asarray(segments_px, dtype=float).reshape(-1, 1, 2)
+    if len(pts) == 0:
+        return np.zeros((0, 2, 2))
+    if camera.has_distortion:
+        out = cv2.undistortPoints(pts, camera.K, camera.dist_coeffs).reshape(-1, 2)
+    else:
+        out = (pts.reshape(-1, 2) - [camera.cx, camera.cy]) / [camera.fx, camera.fy]
+    return out.reshape(-1, 2, 2)
+
+
+def to_pixels(normalised: np.ndarray, camera: Camera) -> np.ndarray:
+    """Ideal (distortion-free) pixel coordinates of normalised camera coordinates."""
+    return np.asarray(normalised) * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+
+
+def virtual_alignment(center_normalised: np.ndarray) -> np.ndarray:
+    """R_align: turns the virtual camera's optical axis onto the ray through the centre."""
+    ray = np.array([center_normalised[0], center_normalised[1], 1.0])
+    return rotation_between(np.array([0.0, 0.0, 1.0]), ray)
+
+
+def to_virtual(segments_normalised: np.ndarray, R_align: np.ndarray) -> np.ndarray:
+    """Segments seen by the virtual camera R_align^T (rays rotated, then re-projected)."""
+    pts = np.asarray(segments_normalised, dtype=float).reshape(-1, 2)
+    rays = np.concatenate([pts, np.ones((len(pts), 1))], axis=1) @ R_align  # R_align^T r
+    return (rays[:, :2] / rays[:, 2:3]).reshape(-1, 2, 2)
+
+
+def pose_from_similarity(R_view: np.ndarray, model_center: np.ndarray, scale: float,
+                         phi: float, shift: np.ndarray, R_align: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """T_cam_model from a view and the similarity view (metres) -> virtual image (module doc)."""
+    R = R_align @ rot_z(phi) @ R_view
+    center_virtual = np.array([shift[0], shift[1], 1.0]) / scale
+    t = R_align @ center_virtual - R @ model_center
+    return R, t
+
+
+def project(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Normalised image coordinates of model points (…, 3); no distortion."""
+    cam = np.asarray(points) @ R.T + t
+    return cam[..., :2] / np.maximum(cam[..., 2:3], 1e-9)
+
+
+def project_pixels(points: np.ndarray, R: np.ndarray, t: np.ndarray, camera: Camera) -> np.ndarray:
+    """Pixel coordinates with the camera's distortion (for drawing and reporting)."""
+    pts = np.asarray(points, dtype=float)
+    flat = pts.reshape(-1, 3)
+    if len(flat) == 0:
+        return np.zeros(pts.shape[:-1] + (2,))
+    rvec, _ = cv2.Rodrigues(np.asarray(R, dtype=float))
+    out, _ = cv2.projectPoints(flat, rvec, np.asarray(t, dtype=float), camera.K, camera.dist_coeffs)
+    return out.reshape(pts.shape[:-1] + (2,))
+
+
+@dataclass
+class LineMatches:
+    """Model segments (3D) paired with image lines (normalised image coordinates)."""
+
+    model_3d: np.ndarray  # (K, 2, 3)
+    image_2d: np.ndarray  # (K, 2, 2)
+    model_index: np.ndarray  # (K,) into the candidate model segments
+    image_index: np.ndarray  # (K,) into the image segments
+
+
+def line_equations(segments: np.ndarray) -> np.ndarray:
+    """(K, 3) lines a x + b y + c = 0 with (a, b) a unit normal."""
+    a, b = segments[:, 0], segments[:, 1]
+    d = b - a
+    n = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
+    return np.concatenate([n, -np.sum(n * a, axis=1, keepdims=True)], axis=1)
+
+
+def associate(model_3d: np.ndarray, R: np.ndarray, t: np.ndarray, image_2d: np.ndarray,
+              tolerance: float, max_angle_deg: float = 10.0) -> LineMatches:
+    """Pair each projected model segment with the closest overlapping, parallel image line.
+
+    Distances are in normalised image units (pixels / f). A model segment keeps its best
+    image line if the line's end points lie within ``tolerance`` of the model line, the
+    directions agree within ``max_angle_deg`` and the two overlap along the line.
+    """
+    empty = LineMatches(np.zeros((0, 2, 3)), np.zeros((0, 2, 2)), np.zeros(0, int), np.zeros(0, int))
+    if len(model_3d) == 0 or len(image_2d) == 0:
+        return empty
+    proj = project(model_3d, R, t)  # (M, 2, 2)
+    m_dir = proj[:, 1] - proj[:, 0]
+    m_len = np.linalg.norm(m_dir, axis=1)
+    ok = m_len > 1e-9
+    m_unit = m_dir / np.maximum(m_len, 1e-12)[:, None]
+    i_dir = image_2d[:, 1] - image_2d[:, 0]
+    i_unit = i_dir / np.maximum(np.linalg.norm(i_dir, axis=1), 1e-12)[:, None]
+    cos = np.abs(m_unit @ i_unit.T)
+    normal = np.stack([-m_unit[:, 1], m_unit[:, 0]], axis=1)
+    rel = image_2d[None, :, :, :] - proj[:, None, 0:1, :]  # (M, N, 2, 2)
+    perp = np.abs(np.einsum("mnkd,md->mnk", rel, normal)).max(axis=2)
+    along = np.einsum("mnkd,md->mnk", rel, m_unit)
+    overlap = np.minimum(along.max(axis=2), m_len[:, None]) - np.maximum(along.min(axis=2), 0.0)
+    valid = (cos > np.cos(np.radians(max_angle_deg))) & (perp < tolerance) & (overlap > 0) & ok[:, None]
+    cost = np.where(valid, perp, np.inf)
+    best = np.argmin(cost, axis=1)
+    keep = np.isfinite(cost[np.arange(len(best)), best])
+    mi = np.nonzero(keep)[0]
+    ii = best[keep]
+    return LineMatches(model_3d[mi], image_2d[ii], mi, ii)
+
+
+def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Robust least squares on the end-point-to-line distances (normalised units)."""
+    if len(matches.model_3d) < 3:
+        return R, t
+    lines = line_equations(matches.image_2d)
+    points = matches.model_3d
+
+    def residuals(x):
+        rot = Rotation.from_rotvec(x[:3]).as_matrix()
+        proj = project(points, rot, x[3:])
+        return (np.einsum("kpd,kd->kp", proj, lines[:, :2]) + lines[:, 2:3]).ravel()
+
+    x0 = np.concatenate([Rotation.from_matrix(R).as_rotvec(), t])
+    result = least_squares(residuals, x0, loss="soft_l1", f_scale=f_scale, max_nfev=30, x_scale="jac")
+    return Rotation.from_rotvec(result.x[:3]).as_matrix(), result.x[3:]
+
+
+def edge_support(model_px: np.ndarray, image_px: np.ndarray, shape: tuple[int, int], tolerance_px: float) -> float:
+    """Share of the projected model edge length lying near an image edge of like direction.
+
+    An oriented chamfer test: image segments are drawn into orientation bins, each bin gets
+    a distance transform, and points sampled every 2 px along each model segment look up
+    the bins within one step of their own direction. Points outside the image count as
+    unsupported. This is the score a user thresholds: it needs no ground truth.
+    """
+    if len(model_px) == 0:
+        return 0.0
+    h, w = shape
+    bins = ORIENTATION_SUPPORT_BINS
+
+    def orientation_bin(segs):
+        d = segs[:, 1] - segs[:, 0]
+        return (np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi) / np.pi * bins).astype(int) % bins
+
+    transforms = np.full((bins, h, w), np.float32(1e6))
+    if len(image_px):
+        img_bins = orientation_bin(image_px)
+        for b in range(bins):
+            sel = image_px[img_bins == b]
+            if len(sel) == 0:
+                continue
+            canvas = np.full((h, w), 255, np.uint8)
+            for seg in np.round(sel).astype(np.int32):
+                cv2.line(canvas, tuple(int(v) for v in seg[0]), tuple(int(v) for v in seg[1]), 0, 1)
+            transforms[b] = cv2.distanceTransform(canvas, cv2.DIST_L2, 3)
+    lengths = np.linalg.norm(model_px[:, 1] - model_px[:, 0], axis=1)
+    counts = np.maximum(np.ceil(lengths / 2.0).astype(int), 1)
+    seg_idx = np.repeat(np.arange(len(model_px)), counts)
+    offsets = np.concatenate([np.arange(c) for c in counts])
+    frac = (offsets + 0.5) / counts[seg_idx]
+    pts = model_px[seg_idx, 0] + frac[:, None] * (model_px[seg_idx, 1] - model_px[seg_idx, 0])
+    weight = (lengths / counts)[seg_idx]
+    x, y = np.round(pts[:, 0]).astype(int), np.round(pts[:, 1]).astype(int)
+    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    own = orientation_bin(model_px)[seg_idx]
+    dist = np.full(len(pts), np.inf)
+    xi, yi = x[inside], y[inside]
+    for step in (-1, 0, 1):
+        b = (own[inside] + step) % bins
+        dist[inside] = np.minimum(dist[inside], transforms[b, yi, xi])
+    return float(weight[dist <= tolerance_px].sum() / max(weight.sum(), 1e-12))
