@@ -20,10 +20,17 @@ Where this goes beyond the paper, and why:
 * Empty elements. Leaving a segment unmatched costs the empty distance e; a pair costs
   its distance. Clipping the matrix at 2e and dropping pairs at the clip is exactly the
   assignment with empty elements inserted on both sides, at the size of the real matrix.
-* Pre-filter. Kuhn-Munkres is cubic; a rotation-, scale- and translation-invariant
-  histogram descriptor shortlists views before it (``ViewLibrary.shortlist``).
+* Pre-filter. Kuhn-Munkres is cubic, so it does not run for every view: points sampled
+  along every view's segments, turned by each view's candidate rotations, look up an
+  oriented distance map of the image region (all views at once, ``ChamferPrefilter``);
+  the closest (view, rotation) pairs go on to the assignment.
 * The matched pairs also give a similarity transform (Procrustes on the nearest pairs),
   which corrects the image normalisation that clutter and occlusion bias.
+* Ranking. After that alignment, views are ranked by how much of the view's and of the
+  region's edge length the other set covers (``coverage``, an F-measure). On rendered
+  sharp brackets, the view with the lowest distance sum was within 15 degrees of the
+  truth for 4 of 12 images, the one with the best coverage for 10 of 12; the distance
+  sum and the nearest-pair ratio are still reported (score, error ratio).
 """
 from __future__ import annotations
 
@@ -36,9 +43,6 @@ from .metric_space import segment_lengths
 from .params import MatchParams
 
 ORIENTATION_BINS = 72  # 2.5 degree bins over [0, pi)
-RADIUS_BINS = np.linspace(0.0, 2.5, 9)
-LENGTH_BINS = np.array([0.0, 0.05, 0.1, 0.2, 0.35, 0.6, 1.0, 10.0])
-PAIR_ANGLE_BINS = np.linspace(0.0, np.pi / 2 + 1e-9, 10)
 
 
 @dataclass
@@ -51,7 +55,6 @@ class SegmentFeatures:
     orientations: np.ndarray  # (N,) direction angle modulo pi
     feet: np.ndarray  # (N, 2) foot of the perpendicular from the origin to the line
     orientation_histogram: np.ndarray  # (ORIENTATION_BINS,) length-weighted, smoothed
-    descriptor: np.ndarray  # rotation/scale/translation-invariant pre-filter descriptor
 
 
 def longest(segments: np.ndarray, count: int) -> np.ndarray:
@@ -71,8 +74,7 @@ def describe(segments: np.ndarray) -> SegmentFeatures:
     unit = d / np.maximum(lengths, 1e-12)[:, None]
     feet = mid - np.sum(mid * unit, axis=1)[:, None] * unit
     hist = _orientation_histogram(orient, lengths)
-    return SegmentFeatures(segments, lengths, mid, orient, feet, hist,
-                           _descriptor(mid, lengths, orient))
+    return SegmentFeatures(segments, lengths, mid, orient, feet, hist)
 
 
 def _orientation_histogram(orient: np.ndarray, lengths: np.ndarray) -> np.ndarray:
@@ -81,24 +83,6 @@ def _orientation_histogram(orient: np.ndarray, lengths: np.ndarray) -> np.ndarra
     kernel = np.array([0.25, 0.5, 1.0, 0.5, 0.25])  # tolerate a few degrees of noise
     padded = np.concatenate([hist[-2:], hist, hist[:2]])
     return np.convolve(padded, kernel, mode="valid")
-
-
-def _descriptor(mid: np.ndarray, lengths: np.ndarray, orient: np.ndarray) -> np.ndarray:
-    """Histograms that no in-plane rotation, scale or shift changes.
-
-    Radii of the segments' midpoints, their lengths, and the angles between pairs of
-    segments, each length-weighted and normalised to sum 1.
-    """
-    total = max(lengths.sum(), 1e-12)
-    radius = np.histogram(np.linalg.norm(mid, axis=1), RADIUS_BINS, weights=lengths)[0] / total
-    length = np.histogram(lengths, LENGTH_BINS, weights=lengths)[0] / total
-    top = np.argsort(-lengths)[:40]
-    diff = np.abs(orient[top, None] - orient[None, top])
-    diff = np.minimum(diff, np.pi - diff)
-    weight = lengths[top, None] * lengths[None, top]
-    pair = np.histogram(diff.ravel(), PAIR_ANGLE_BINS, weights=weight.ravel())[0]
-    pair = pair / max(pair.sum(), 1e-12)
-    return np.concatenate([radius, length, pair])
 
 
 def rotation_candidates(view_hist: np.ndarray, image_hist: np.ndarray, count: int) -> np.ndarray:
@@ -171,20 +155,23 @@ def assign(model: SegmentFeatures, image: SegmentFeatures, phi: float, p: MatchP
     return Assignment(float(cost), rows, cols, pair_dist, nearest, n_m, empty_distance)
 
 
-def similarity_from_pairs(model: SegmentFeatures, image: SegmentFeatures,
-                          assignment: Assignment) -> tuple[float, float, np.ndarray] | None:
+def similarity_from_pairs(model: SegmentFeatures, image: SegmentFeatures, assignment: Assignment,
+                          phi: float) -> tuple[float, float, np.ndarray] | None:
     """Scale, rotation and shift mapping model to image points, from the nearest pairs.
 
     Weighted 2D Procrustes (Umeyama) over the matched segments' end points, each pair's
-    end points taken in the order that fits best. None with fewer than two nearest pairs.
+    end points taken in the order that fits best once the model is turned by ``phi``, the
+    rotation the pairs were matched at. None with fewer than two nearest pairs.
     """
     keep = assignment.nearest
     if keep.sum() < 2:
         return None
     src = model.segments[assignment.model_index[keep]]
     dst = image.segments[assignment.image_index[keep]]
-    straight = np.sum((src - dst) ** 2, axis=(1, 2))
-    swapped = np.sum((src - dst[:, ::-1]) ** 2, axis=(1, 2))
+    c, s = np.cos(phi), np.sin(phi)
+    turned = src @ np.array([[c, s], [-s, c]])
+    straight = np.sum((turned - dst) ** 2, axis=(1, 2))
+    swapped = np.sum((turned - dst[:, ::-1]) ** 2, axis=(1, 2))
     dst = np.where((swapped < straight)[:, None, None], dst[:, ::-1], dst)
     weights = np.repeat(np.minimum(model.lengths[assignment.model_index[keep]],
                                    image.lengths[assignment.image_index[keep]]), 2)
@@ -208,3 +195,102 @@ def weighted_similarity(src: np.ndarray, dst: np.ndarray, weights: np.ndarray):
     if scale <= 0:
         return None
     return scale, float(angle), mu_d - scale * rot @ mu_s
+
+
+def _sample_points(segments: np.ndarray, per_segment: int) -> tuple[np.ndarray, np.ndarray]:
+    frac = (np.arange(per_segment) + 0.5) / per_segment
+    pts = segments[:, None, 0] + frac[None, :, None] * (segments[:, None, 1] - segments[:, None, 0])
+    weight = np.repeat(segment_lengths(segments) / per_segment, per_segment)
+    return pts.reshape(-1, 2), weight
+
+
+def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """(P, S) distances of points to segments."""
+    a, b = segments[:, 0], segments[:, 1]
+    d = b - a
+    dd = np.maximum(np.sum(d * d, axis=1), 1e-18)
+    rel = points[:, None, :] - a[None, :, :]
+    u = np.clip(np.einsum("psk,sk->ps", rel, d) / dd, 0.0, 1.0)
+    nearest = a[None] + u[..., None] * d[None]
+    return np.linalg.norm(points[:, None, :] - nearest, axis=2)
+
+
+def coverage(source: np.ndarray, target: np.ndarray, tolerance: float, max_angle_deg: float = 12.0,
+             per_segment: int = 6) -> float:
+    """Share of the length of ``source`` segments lying within ``tolerance`` of a parallel
+    ``target`` segment: an oriented chamfer test in the normalised frame."""
+    if len(source) == 0 or len(target) == 0:
+        return 0.0
+    pts, weight = _sample_points(source, per_segment)
+    dist = point_segment_distance(pts, target)
+    su = source[:, 1] - source[:, 0]
+    tu = target[:, 1] - target[:, 0]
+    cos = np.abs(su @ tu.T) / np.maximum(np.outer(np.linalg.norm(su, axis=1), np.linalg.norm(tu, axis=1)), 1e-18)
+    parallel = np.repeat(cos > np.cos(np.radians(max_angle_deg)), per_segment, axis=0)
+    covered = (np.where(parallel, dist, np.inf).min(axis=1) < tolerance)
+    return float(weight[covered].sum() / max(weight.sum(), 1e-18))
+
+
+class ChamferPrefilter:
+    """Oriented chamfer distance of every view, at its candidate rotations, to a region.
+
+    Views are sampled once as ``points_per_view`` points along their normalised segments
+    (length-weighted). A region is rasterised once into ``ORIENT_BINS`` distance maps, one
+    per edge direction, over the normalised square [-EXTENT, EXTENT]^2. Scoring every
+    (view, rotation) is then a gather over a (V, R, P) index array: a few milliseconds for
+    thousands of views.
+    """
+
+    ORIENT_BINS = 6
+    GRID = 96
+    EXTENT = 2.0
+    TRUNCATE = 0.25
+
+    def __init__(self, view_features: list[SegmentFeatures], points_per_view: int = 48):
+        pts, ori = [], []
+        for f in view_features:
+            p, o = _spread_points(f.segments, points_per_view)
+            pts.append(p)
+            ori.append(o)
+        self.points = np.stack(pts)  # (V, P, 2)
+        self.orientations = np.stack(ori)  # (V, P) modulo pi
+
+    def distance_maps(self, region: SegmentFeatures) -> np.ndarray:
+        import cv2
+
+        cell = 2.0 * self.EXTENT / self.GRID
+        maps = np.empty((self.ORIENT_BINS, self.GRID, self.GRID), np.float32)
+        bins = (region.orientations / np.pi * self.ORIENT_BINS).astype(int) % self.ORIENT_BINS
+        ends = np.round((region.segments + self.EXTENT) / cell).astype(np.int32)
+        for b in range(self.ORIENT_BINS):
+            canvas = np.full((self.GRID, self.GRID), 255, np.uint8)
+            for seg in ends[bins == b]:
+                cv2.line(canvas, (int(seg[0, 0]), int(seg[0, 1])), (int(seg[1, 0]), int(seg[1, 1])), 0, 1)
+            maps[b] = cv2.distanceTransform(canvas, cv2.DIST_L2, 3) * cell
+        return np.minimum(maps, self.TRUNCATE)
+
+    def scores(self, maps: np.ndarray, phis: np.ndarray) -> np.ndarray:
+        """(V, R) mean truncated oriented distance of view v turned by phis[v, r]."""
+        c, s = np.cos(phis)[..., None], np.sin(phis)[..., None]
+        x, y = self.points[:, None, :, 0], self.points[:, None, :, 1]
+        xr, yr = c * x - s * y, s * x + c * y  # (V, R, P)
+        cell = 2.0 * self.EXTENT / self.GRID
+        col = np.clip(((xr + self.EXTENT) / cell).astype(int), 0, self.GRID - 1)
+        row = np.clip(((yr + self.EXTENT) / cell).astype(int), 0, self.GRID - 1)
+        ori = np.mod(self.orientations[:, None, :] + phis[..., None], np.pi)
+        b = (ori / np.pi * self.ORIENT_BINS).astype(int) % self.ORIENT_BINS
+        outside = (np.abs(xr) > self.EXTENT) | (np.abs(yr) > self.EXTENT)
+        dist = np.where(outside, self.TRUNCATE, maps[b, row, col])
+        return dist.mean(axis=2)
+
+
+def _spread_points(segments: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points evenly spaced along the total length of a segment set."""
+    lengths = segment_lengths(segments)
+    cum = np.concatenate([[0.0], np.cumsum(lengths)])
+    at = (np.arange(count) + 0.5) / count * cum[-1]
+    idx = np.clip(np.searchsorted(cum, at, side="right") - 1, 0, len(segments) - 1)
+    frac = (at - cum[idx]) / np.maximum(lengths[idx], 1e-12)
+    a, b = segments[idx, 0], segments[idx, 1]
+    d = b - a
+    return a + frac[:, None] * d, np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)

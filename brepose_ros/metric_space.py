@@ -89,3 +89,26 @@ def tetrads(segments: np.ndarray) -> np.ndarray:
 def wrap_angle(angle: np.ndarray) -> np.ndarray:
     """Angles mapped to [-pi, pi): angles compare on the circle, not as raw numbers."""
     return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def outline_normalisation(segments: np.ndarray) -> Normalisation:
+    """Centroid and square root of the area of the convex hull of all end points.
+
+    The outline of a part is what an image shows most reliably (part against background),
+    while inner edges come and go with lighting; so this normalisation agrees between a
+    view and an image that misses some inner edges, where the length-weighted one drifts.
+    """
+    import cv2
+
+    pts = np.asarray(segments, dtype=np.float64).reshape(-1, 2)
+    if len(pts) < 3:
+        raise ValueError("cannot normalise fewer than two segments")
+    hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+    x, y = hull[:, 0], hull[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    cross = x * yn - xn * y
+    area = cross.sum() / 2.0
+    if abs(area) < 1e-12 * max(np.ptp(pts), 1e-12) ** 2:
+        return normalisation_of(segments)
+    center = np.array([((x + xn) * cross).sum(), ((y + yn) * cross).sum()]) / (6.0 * area)
+    return Normalisation(center=center, scale=float(np.sqrt(abs(area))))

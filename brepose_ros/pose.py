@@ -30,8 +30,6 @@ from scipy.spatial.transform import Rotation
 from .camera import Camera
 from .geometry import rot_z, rotation_between
 
-ORIENTATION_SUPPORT_BINS = 8
-
 
 def undistort_segments(segments_px: np.ndarray, camera: Camera) -> np.ndarray:
     """Image segments in normalised camera coordinates ((u - cx) / fx, (v - cy) / fy)."""
@@ -157,47 +155,52 @@ def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: flo
     return Rotation.from_rotvec(result.x[:3]).as_matrix(), result.x[3:]
 
 
-def edge_support(model_px: np.ndarray, image_px: np.ndarray, shape: tuple[int, int], tolerance_px: float) -> float:
-    """Share of the projected model edge length lying near an image edge of like direction.
+class EdgeEvidence:
+    """Oriented distance maps of an image's segments, built once per image.
 
-    An oriented chamfer test: image segments are drawn into orientation bins, each bin gets
-    a distance transform, and points sampled every 2 px along each model segment look up
-    the bins within one step of their own direction. Points outside the image count as
-    unsupported. This is the score a user thresholds: it needs no ground truth.
+    ``support`` is an oriented chamfer test: points sampled every 2 px along each projected
+    model segment look up the maps of the orientation bins within one step of their own
+    direction. Points outside the image count as unsupported.
     """
-    if len(model_px) == 0:
-        return 0.0
-    h, w = shape
-    bins = ORIENTATION_SUPPORT_BINS
 
-    def orientation_bin(segs):
-        d = segs[:, 1] - segs[:, 0]
-        return (np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi) / np.pi * bins).astype(int) % bins
+    BINS = 8
 
-    transforms = np.full((bins, h, w), np.float32(1e6))
-    if len(image_px):
-        img_bins = orientation_bin(image_px)
-        for b in range(bins):
-            sel = image_px[img_bins == b]
+    def __init__(self, image_px: np.ndarray, shape: tuple[int, int]):
+        h, w = shape
+        self.shape = shape
+        self.maps = np.full((self.BINS, h, w), np.float32(1e6))
+        if len(image_px) == 0:
+            return
+        bins = self.orientation_bin(image_px)
+        for b in range(self.BINS):
+            sel = image_px[bins == b]
             if len(sel) == 0:
                 continue
             canvas = np.full((h, w), 255, np.uint8)
             for seg in np.round(sel).astype(np.int32):
                 cv2.line(canvas, tuple(int(v) for v in seg[0]), tuple(int(v) for v in seg[1]), 0, 1)
-            transforms[b] = cv2.distanceTransform(canvas, cv2.DIST_L2, 3)
-    lengths = np.linalg.norm(model_px[:, 1] - model_px[:, 0], axis=1)
-    counts = np.maximum(np.ceil(lengths / 2.0).astype(int), 1)
-    seg_idx = np.repeat(np.arange(len(model_px)), counts)
-    offsets = np.concatenate([np.arange(c) for c in counts])
-    frac = (offsets + 0.5) / counts[seg_idx]
-    pts = model_px[seg_idx, 0] + frac[:, None] * (model_px[seg_idx, 1] - model_px[seg_idx, 0])
-    weight = (lengths / counts)[seg_idx]
-    x, y = np.round(pts[:, 0]).astype(int), np.round(pts[:, 1]).astype(int)
-    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-    own = orientation_bin(model_px)[seg_idx]
-    dist = np.full(len(pts), np.inf)
-    xi, yi = x[inside], y[inside]
-    for step in (-1, 0, 1):
-        b = (own[inside] + step) % bins
-        dist[inside] = np.minimum(dist[inside], transforms[b, yi, xi])
-    return float(weight[dist <= tolerance_px].sum() / max(weight.sum(), 1e-12))
+            self.maps[b] = cv2.distanceTransform(canvas, cv2.DIST_L2, 3)
+
+    def orientation_bin(self, segments: np.ndarray) -> np.ndarray:
+        d = segments[:, 1] - segments[:, 0]
+        return (np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi) / np.pi * self.BINS).astype(int) % self.BINS
+
+    def support(self, model_px: np.ndarray, tolerance_px: float) -> float:
+        """Share of the projected model edge length lying near an image edge of like direction."""
+        if len(model_px) == 0:
+            return 0.0
+        h, w = self.shape
+        lengths = np.linalg.norm(model_px[:, 1] - model_px[:, 0], axis=1)
+        counts = np.clip(np.ceil(lengths / 2.0).astype(int), 1, 2000)
+        seg_idx = np.repeat(np.arange(len(model_px)), counts)
+        offsets = np.arange(len(seg_idx)) - np.repeat(np.cumsum(counts) - counts, counts)
+        frac = (offsets + 0.5) / counts[seg_idx]
+        pts = model_px[seg_idx, 0] + frac[:, None] * (model_px[seg_idx, 1] - model_px[seg_idx, 0])
+        weight = (lengths / counts)[seg_idx]
+        x, y = np.round(pts[:, 0]).astype(int), np.round(pts[:, 1]).astype(int)
+        inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+        own = self.orientation_bin(model_px)[seg_idx][inside]
+        xi, yi = x[inside], y[inside]
+        dist = np.full(len(pts), np.inf)
+        dist[inside] = np.min([self.maps[(own + step) % self.BINS, yi, xi] for step in (-1, 0, 1)], axis=0)
+        return float(weight[dist <= tolerance_px].sum() / max(weight.sum(), 1e-12))

@@ -71,7 +71,7 @@ def test_assignment_recovers_pairs_and_similarity_despite_clutter():
     correct = sum(found.get(order[i]) == i for i in range(len(segs)))
     assert correct >= len(segs) - 2
     assert assignment.error_ratio < 0.3
-    scale, angle, shift = matching.similarity_from_pairs(model_f, image_f, assignment)
+    scale, angle, shift = matching.similarity_from_pairs(model_f, image_f, assignment, 1.1)
     assert scale == pytest.approx(1.0, abs=0.05)
     assert wrap_angle(angle - 1.1) == pytest.approx(0.0, abs=0.03)
     assert np.linalg.norm(shift) < 0.05
