@@ -294,3 +294,35 @@ def _spread_points(segments: np.ndarray, count: int) -> tuple[np.ndarray, np.nda
     a, b = segments[idx, 0], segments[idx, 1]
     d = b - a
     return a + frac[:, None] * d, np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
+
+
+def align_to_lines(model: np.ndarray, image: np.ndarray, tolerances: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """2D ICP on segments: a similarity pulling ``model`` end points onto their nearest
+    image lines, re-associating at each tolerance in turn (normalised units).
+
+    The similarity x' = [[p, -q], [q, p]] x + b is linear in (p, q, bx, by), and so is
+    the distance of x' to a line: each round is one 4x4 least-squares solve. Returns the
+    moved model segments and the 2x3 similarity matrix applied to them.
+    """
+    from .pose import line_equations, nearest_lines
+
+    total = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    moved = model
+    for tolerance in tolerances:
+        mi, ii = nearest_lines(moved, image, tolerance)
+        if len(mi) < 3:
+            break
+        lines = np.repeat(line_equations(image[ii]), 2, axis=0)
+        pts = moved[mi].reshape(-1, 2)
+        n, c = lines[:, :2], lines[:, 2]
+        rows = np.stack([n[:, 0] * pts[:, 0] + n[:, 1] * pts[:, 1],
+                         -n[:, 0] * pts[:, 1] + n[:, 1] * pts[:, 0], n[:, 0], n[:, 1]], axis=1)
+        weights = np.repeat(segment_lengths(moved[mi]), 2)
+        solution = np.linalg.lstsq(rows * weights[:, None], -c * weights, rcond=None)[0]
+        p, q, bx, by = solution
+        if not np.all(np.isfinite(solution)) or np.hypot(p, q) < 1e-6:
+            break
+        step = np.array([[p, -q, bx], [q, p, by]])
+        moved = moved @ step[:, :2].T + step[:, 2]
+        total = step[:, :2] @ total + np.concatenate([np.zeros((2, 2)), step[:, 2:]], axis=1)
+    return moved, total

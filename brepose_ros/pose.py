@@ -108,33 +108,40 @@ def associate(model_3d: np.ndarray, R: np.ndarray, t: np.ndarray, image_2d: np.n
               tolerance: float, max_angle_deg: float = 10.0) -> LineMatches:
     """Pair each projected model segment with the closest overlapping, parallel image line.
 
-    Distances are in normalised image units (pixels / f). A model segment keeps its best
-    image line if the line's end points lie within ``tolerance`` of the model line, the
-    directions agree within ``max_angle_deg`` and the two overlap along the line.
+    Distances are in normalised image units (pixels / f); see ``nearest_lines``.
     """
-    empty = LineMatches(np.zeros((0, 2, 3)), np.zeros((0, 2, 2)), np.zeros(0, int), np.zeros(0, int))
     if len(model_3d) == 0 or len(image_2d) == 0:
-        return empty
-    proj = project(model_3d, R, t)  # (M, 2, 2)
-    m_dir = proj[:, 1] - proj[:, 0]
+        return LineMatches(np.zeros((0, 2, 3)), np.zeros((0, 2, 2)), np.zeros(0, int), np.zeros(0, int))
+    mi, ii = nearest_lines(project(model_3d, R, t), image_2d, tolerance, max_angle_deg)
+    return LineMatches(model_3d[mi], image_2d[ii], mi, ii)
+
+
+def nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, tolerance: float,
+                  max_angle_deg: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (model, image) pairing each model segment with its best image segment.
+
+    A model segment keeps the image segment whose end points lie closest to the model's
+    line, provided that is within ``tolerance``, the directions agree within
+    ``max_angle_deg`` and the two overlap along the line.
+    """
+    if len(model_2d) == 0 or len(image_2d) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    m_dir = model_2d[:, 1] - model_2d[:, 0]
     m_len = np.linalg.norm(m_dir, axis=1)
-    ok = m_len > 1e-9
     m_unit = m_dir / np.maximum(m_len, 1e-12)[:, None]
     i_dir = image_2d[:, 1] - image_2d[:, 0]
     i_unit = i_dir / np.maximum(np.linalg.norm(i_dir, axis=1), 1e-12)[:, None]
     cos = np.abs(m_unit @ i_unit.T)
     normal = np.stack([-m_unit[:, 1], m_unit[:, 0]], axis=1)
-    rel = image_2d[None, :, :, :] - proj[:, None, 0:1, :]  # (M, N, 2, 2)
+    rel = image_2d[None, :, :, :] - model_2d[:, None, 0:1, :]  # (M, N, 2, 2)
     perp = np.abs(np.einsum("mnkd,md->mnk", rel, normal)).max(axis=2)
     along = np.einsum("mnkd,md->mnk", rel, m_unit)
     overlap = np.minimum(along.max(axis=2), m_len[:, None]) - np.maximum(along.min(axis=2), 0.0)
-    valid = (cos > np.cos(np.radians(max_angle_deg))) & (perp < tolerance) & (overlap > 0) & ok[:, None]
+    valid = (cos > np.cos(np.radians(max_angle_deg))) & (perp < tolerance) & (overlap > 0) & (m_len > 1e-12)[:, None]
     cost = np.where(valid, perp, np.inf)
     best = np.argmin(cost, axis=1)
     keep = np.isfinite(cost[np.arange(len(best)), best])
-    mi = np.nonzero(keep)[0]
-    ii = best[keep]
-    return LineMatches(model_3d[mi], image_2d[ii], mi, ii)
+    return np.nonzero(keep)[0], best[keep]
 
 
 def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: float,
@@ -164,8 +171,14 @@ def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: flo
         jac_rot = np.cross(rotated, g)  # g . (w x RX) = w . (RX x g)
         jac = np.concatenate([jac_rot, g], axis=1)
         weight = np.minimum(1.0, f_scale / np.maximum(np.abs(residual), 1e-12))
-        hessian = (jac * weight[:, None]).T @ jac + 1e-9 * np.eye(6)
-        step = -np.linalg.solve(hessian, (jac * weight[:, None]).T @ residual)
+        hessian = (jac * weight[:, None]).T @ jac
+        hessian += 1e-6 * np.trace(hessian) / 6.0 * np.eye(6)  # damping: degenerate line sets
+        try:
+            step = -np.linalg.solve(hessian, (jac * weight[:, None]).T @ residual)
+        except np.linalg.LinAlgError:
+            break
+        if not np.all(np.isfinite(step)):
+            break
         R = Rotation.from_rotvec(step[:3]).as_matrix() @ R
         t = t + step[3:]
         if np.linalg.norm(step) < 1e-7:
@@ -174,37 +187,39 @@ def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: flo
 
 
 class EdgeEvidence:
-    """Oriented distance maps of an image's segments, built once per image.
+    """What the image says about edges, prepared once per image for scoring poses.
 
-    ``support`` is an oriented chamfer test: points sampled every 2 px along each projected
-    model segment look up the maps of the orientation bins within one step of their own
-    direction. Points outside the image count as unsupported.
+    Built from the Canny edge pixels, not from the Hough segments: a faint or curved edge
+    that the line detector dropped still has its pixels, and a score counted on pixels
+    separates right from wrong poses far better (on cluttered renders the true pose scored
+    above every wrongly chosen one, where the segment-based score did not).
+
+    * ``support`` (model -> image): share of the projected model edge length within
+      ``tolerance`` of an edge pixel of like direction (oriented chamfer: one distance map
+      per direction bin, each model point looks up its bin and the two next to it).
+    * ``explained`` (image -> model): share of the edge pixels inside the projected part's
+      convex outline lying within ``tolerance`` of a projected model edge.
     """
 
     BINS = 8
 
-    def __init__(self, image_px: np.ndarray, shape: tuple[int, int]):
-        h, w = shape
-        self.shape = shape
-        self.maps = np.full((self.BINS, h, w), np.float32(1e6))
-        if len(image_px) == 0:
-            return
-        bins = self.orientation_bin(image_px)
-        for b in range(self.BINS):
-            sel = image_px[bins == b]
-            if len(sel) == 0:
-                continue
-            canvas = np.full((h, w), 255, np.uint8)
-            for seg in np.round(sel).astype(np.int32):
-                cv2.line(canvas, tuple(int(v) for v in seg[0]), tuple(int(v) for v in seg[1]), 0, 1)
-            self.maps[b] = cv2.distanceTransform(canvas, cv2.DIST_L2, 3)
+    def __init__(self, edge_map: np.ndarray, gray: np.ndarray):
+        self.shape = edge_map.shape
+        self.edges = edge_map > 0
+        smooth = cv2.GaussianBlur(np.asarray(gray, np.float32), (5, 5), 0)
+        dx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0)
+        dy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1)
+        direction = np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi)  # edge runs across the gradient
+        bins = (direction / np.pi * self.BINS).astype(int) % self.BINS
+        self.maps = np.stack([
+            cv2.distanceTransform(np.where(self.edges & (bins == b), 0, 255).astype(np.uint8), cv2.DIST_L2, 3)
+            for b in range(self.BINS)])
 
     def orientation_bin(self, segments: np.ndarray) -> np.ndarray:
         d = segments[:, 1] - segments[:, 0]
         return (np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi) / np.pi * self.BINS).astype(int) % self.BINS
 
     def support(self, model_px: np.ndarray, tolerance_px: float) -> float:
-        """Share of the projected model edge length lying near an image edge of like direction."""
         if len(model_px) == 0:
             return 0.0
         h, w = self.shape
@@ -222,3 +237,20 @@ class EdgeEvidence:
         dist = np.full(len(pts), np.inf)
         dist[inside] = np.min([self.maps[(own + step) % self.BINS, yi, xi] for step in (-1, 0, 1)], axis=0)
         return float(weight[dist <= tolerance_px].sum() / max(weight.sum(), 1e-12))
+
+    def explained(self, model_px: np.ndarray, tolerance_px: float) -> float:
+        if len(model_px) == 0:
+            return 0.0
+        h, w = self.shape
+        pts = np.asarray(model_px, np.float32).reshape(-1, 2)
+        pts = np.clip(pts, -4 * max(h, w), 4 * max(h, w))
+        outline = np.zeros((h, w), np.uint8)
+        cv2.fillConvexPoly(outline, np.round(cv2.convexHull(pts)).astype(np.int32), 1)
+        inside = self.edges & (outline > 0)
+        if not inside.any():
+            return 0.0
+        canvas = np.full((h, w), 255, np.uint8)
+        for seg in np.round(pts.reshape(-1, 2, 2)).astype(np.int32):
+            cv2.line(canvas, (int(seg[0, 0]), int(seg[0, 1])), (int(seg[1, 0]), int(seg[1, 1])), 0, 1)
+        near = cv2.distanceTransform(canvas, cv2.DIST_L2, 3) <= tolerance_px
+        return float((near & inside).sum() / inside.sum())
