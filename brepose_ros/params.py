@@ -45,8 +45,11 @@ class MatchParams:
 class PoseParams:
     """Metric pose, refinement and the found / not-found decision."""
 
-    refine_iterations: int = doc("re-match and refine rounds; 0 keeps the first pose from the view", 4)
-    inlier_pixels: float = doc("distance of a projected model edge to an image edge still counted as found, pixels", 3.0)
+    refine_iterations: int = doc("re-match and refine rounds of every hypothesis; 0 keeps the first pose from the view", 6)
+    climb_candidates: int = doc("best-scoring refined hypotheses that go on to the search over neighbouring views", 2)
+    view_search_steps: int = doc("steps of the hill-climb over neighbouring aspect-graph views; 0 turns it off", 4)
+    inlier_pixels: float = doc("distance of a projected model edge to an image edge still counted as found, pixels", 2.0)
+    min_size_pixels: float = doc("smallest diagonal of the projected part, pixels; smaller poses score 0", 40.0)
     min_score: float = doc("a pose with a lower score is reported as not found", 0.45)
     warn_error_ratio: float = doc("diagnostics turn WARN above this error ratio", 0.5)
 

@@ -198,10 +198,13 @@ class EdgeEvidence:
       ``tolerance`` of an edge pixel of like direction (oriented chamfer: one distance map
       per direction bin, each model point looks up its bin and the two next to it).
     * ``explained`` (image -> model): share of the edge pixels inside the projected part's
-      convex outline lying within ``tolerance`` of a projected model edge.
+      convex outline, grown by ``OUTLINE_MARGIN``, lying within ``tolerance`` of a
+      projected model edge. The margin is what stops a small pose that fits one inner
+      feature (a window of the part) from explaining everything it covers.
     """
 
     BINS = 8
+    OUTLINE_MARGIN = 0.2
 
     def __init__(self, edge_map: np.ndarray, gray: np.ndarray):
         self.shape = edge_map.shape
@@ -244,8 +247,11 @@ class EdgeEvidence:
         h, w = self.shape
         pts = np.asarray(model_px, np.float32).reshape(-1, 2)
         pts = np.clip(pts, -4 * max(h, w), 4 * max(h, w))
+        hull = cv2.convexHull(pts).reshape(-1, 2)
+        center = hull.mean(axis=0)
+        hull = center + (1.0 + self.OUTLINE_MARGIN) * (hull - center)
         outline = np.zeros((h, w), np.uint8)
-        cv2.fillConvexPoly(outline, np.round(cv2.convexHull(pts)).astype(np.int32), 1)
+        cv2.fillConvexPoly(outline, np.round(hull).astype(np.int32), 1)
         inside = self.edges & (outline > 0)
         if not inside.any():
             return 0.0
