@@ -1,0 +1,359 @@
+"""Stage 2 (offline): the aspect graph, the visible edges of a part from every viewpoint.
+
+For each view on the sphere (``viewsphere``) the visible line sections (``hidden_lines``)
+are stored twice: normalised in the view plane for the matcher (the seed paper's metric
+space, ``metric_space``) and as 3D end points on the model, in metres, for the pose solver.
+
+View 2D coordinates (the online matcher depends on them exactly): with
+``R_view = geometry.look_at_rotation(direction, up)`` the orthographic coordinates of a
+model point X are ``xy = (R_view @ (X - model_center))[:2]``; per view
+``norm = metric_space.normalisation_of(xy)`` and ``seg_2d = norm.apply(xy)``, with
+``norm_centers[i]``/``norm_scales[i]`` its centre and scale in metres.
+
+Segments are stored flat (CSR): the sections of view i are rows
+``seg_offsets[i]:seg_offsets[i + 1]`` of seg_2d, seg_3d, seg_kind and tetrads.
+
+The file (MODEL.brepose.npz) is data, never code: an uncompressed npz read with
+``allow_pickle=False``, plus a JSON metadata entry with the format version, the sha256 of
+the source STEP, the compile parameters, the units and the array shapes, and a sha256 over
+the metadata and the array bytes so that any change after writing is detected.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .cad import file_sha256, load_step
+from .geometry import look_at_rotation
+from .hidden_lines import (DEFAULT_CHORD_TOLERANCE, DEFAULT_METHOD, DEFAULT_MIN_LENGTH, KIND_NAMES,
+                           HiddenLineRemover, view_coordinates)
+from .metric_space import Normalisation, normalisation_of, tetrads
+from .viewsphere import fibonacci_directions, lonlat_directions, view_ups
+
+FORMAT = "brepose-aspect-graph"
+FORMAT_VERSION = 1
+SUFFIX = ".brepose.npz"
+#: Golden-spiral spacing of the views: about 1,500 views, no direction more than 4 degrees
+#: from its nearest view.
+DEFAULT_STEP_DEG = 5.0
+
+#: name -> (dtype, shape with V = views, S = segments): the file's whole contract.
+_ARRAYS = {
+    "model_center": (np.float64, ("3",)),
+    "view_directions": (np.float64, ("V", "3")),
+    "view_ups": (np.float64, ("V", "3")),
+    "view_rotations": (np.float64, ("V", "3", "3")),
+    "seg_offsets": (np.int64, ("V+1",)),
+    "seg_2d": (np.float32, ("S", "2", "2")),
+    "seg_3d": (np.float64, ("S", "2", "3")),
+    "seg_kind": (np.uint8, ("S",)),
+    "norm_centers": (np.float64, ("V", "2")),
+    "norm_scales": (np.float64, ("V",)),
+    "tetrads": (np.float32, ("S", "4")),
+}
+
+
+class AspectGraphError(ValueError):
+    """An aspect graph that cannot be compiled or used, with the reason in the message."""
+
+
+@dataclass(frozen=True)
+class AspectView:
+    """One view of an aspect graph, as the matcher and the pose solver use it."""
+
+    index: int
+    direction: np.ndarray  # (3,) viewing direction, model frame
+    rotation: np.ndarray  # (3, 3) R_view = look_at_rotation(direction, up)
+    normalisation: Normalisation  # metres -> normalised view coordinates
+    seg_2d: np.ndarray  # (n, 2, 2) normalised view coordinates
+    seg_3d: np.ndarray  # (n, 2, 3) metres, model frame
+    seg_kind: np.ndarray  # (n,) 0 sharp, 1 outline, 2 smooth
+    tetrads: np.ndarray  # (n, 4) metric_space.tetrads(seg_2d)
+
+
+@dataclass(eq=False)
+class AspectGraph:
+    """Views of a part and their visible line sections (see the module docstring)."""
+
+    step_sha256: str
+    params: dict
+    model_center: np.ndarray
+    model_diameter: float
+    n_faces: int
+    view_directions: np.ndarray
+    view_ups: np.ndarray
+    view_rotations: np.ndarray
+    seg_offsets: np.ndarray
+    seg_2d: np.ndarray
+    seg_3d: np.ndarray
+    seg_kind: np.ndarray
+    norm_centers: np.ndarray
+    norm_scales: np.ndarray
+    tetrads: np.ndarray
+    format_version: int = FORMAT_VERSION
+
+    @property
+    def n_views(self) -> int:
+        return len(self.view_directions)
+
+    @property
+    def n_segments(self) -> int:
+        return len(self.seg_kind)
+
+    def view_slice(self, i: int) -> slice:
+        """Rows of seg_2d, seg_3d, seg_kind and tetrads that belong to view ``i``."""
+        return slice(int(self.seg_offsets[i]), int(self.seg_offsets[i + 1]))
+
+    def segments_of(self, i: int) -> AspectView:
+        rows = self.view_slice(i)
+        return AspectView(i, self.view_directions[i], self.view_rotations[i],
+                          Normalisation(self.norm_centers[i], float(self.norm_scales[i])),
+                          self.seg_2d[rows], self.seg_3d[rows], self.seg_kind[rows], self.tetrads[rows])
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self, name) for name in _ARRAYS}
+
+    def _metadata(self) -> dict:
+        return {
+            "format": FORMAT,
+            "format_version": self.format_version,
+            "step_sha256": self.step_sha256,
+            "params": self.params,
+            "units": "m",
+            "model_diameter": self.model_diameter,
+            "n_faces": self.n_faces,
+            "arrays": {name: {"dtype": np.dtype(dtype).str, "shape": list(getattr(self, name).shape)}
+                       for name, (dtype, _) in _ARRAYS.items()},
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write MODEL.brepose.npz atomically (a crash leaves no half-written file)."""
+        path = Path(path)
+        metadata = self._metadata()
+        metadata["content_sha256"] = _digest(metadata, self.arrays())
+        entries = {name: np.ascontiguousarray(a) for name, a in self.arrays().items()}
+        entries["metadata"] = np.array(json.dumps(metadata, sort_keys=True))
+        try:
+            handle, tmp = tempfile.mkstemp(dir=path.parent, suffix=".part")
+        except OSError as error:
+            raise AspectGraphError(f"cannot write {path}: {error}") from error
+        try:
+            with os.fdopen(handle, "wb") as stream:
+                np.savez(stream, **entries)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, step_path: str | Path | None = None) -> AspectGraph:
+        """Read and check an aspect graph; with ``step_path``, also that it was compiled
+        from that STEP file. Raises AspectGraphError naming what is wrong."""
+        path = Path(path)
+        metadata, arrays = _read(path)
+        version = metadata.get("format_version")
+        if not isinstance(version, int) or version < 1:
+            raise AspectGraphError(f"{path}: invalid format version {version!r}")
+        if version > FORMAT_VERSION:
+            raise AspectGraphError(f"{path}: format version {version} is newer than this brepose_ros "
+                                   f"reads (up to {FORMAT_VERSION}); update brepose_ros or recompile")
+        _check_arrays(path, metadata, arrays)
+        claimed = metadata.pop("content_sha256", None)
+        if claimed != _digest(metadata, arrays):
+            raise AspectGraphError(f"{path}: content digest mismatch: the file was modified after it "
+                                   f"was written (tampered with or corrupted); recompile it")
+        if step_path is not None:
+            actual = file_sha256(step_path)
+            if actual != metadata["step_sha256"]:
+                raise AspectGraphError(f"{path} was compiled from a different STEP file than {step_path} "
+                                       f"(sha256 {metadata['step_sha256'][:12]}... vs {actual[:12]}...); "
+                                       f"recompile it")
+        return cls(step_sha256=metadata["step_sha256"], params=metadata["params"],
+                   model_diameter=float(metadata["model_diameter"]), n_faces=int(metadata["n_faces"]),
+                   format_version=version, **arrays)
+
+
+def default_path(step_path: str | Path) -> Path:
+    """MODEL.brepose.npz in the current directory for MODEL.step."""
+    return Path(Path(step_path).stem + SUFFIX)
+
+
+def _digest(metadata: dict, arrays: dict[str, np.ndarray]) -> str:
+    """sha256 over the canonical metadata JSON and every array's name, dtype, shape and bytes."""
+    digest = hashlib.sha256(json.dumps(metadata, sort_keys=True).encode())
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        digest.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        digest.update(a.tobytes())
+    return digest.hexdigest()
+
+
+def _read(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
+    """Metadata and arrays of an aspect graph file, or AspectGraphError saying why not."""
+    if not path.is_file():
+        raise AspectGraphError(f"aspect graph file {path} does not exist")
+    with open(path, "rb") as stream:
+        magic = stream.read(4)
+    if magic != b"PK\x03\x04":
+        raise AspectGraphError(f"{path} is not an aspect graph file (not an npz/zip archive)")
+    if not zipfile.is_zipfile(path):
+        raise AspectGraphError(f"{path} is truncated (its zip directory is missing); recompile it")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            if "metadata" not in npz.files:
+                raise AspectGraphError(f"{path} is an npz file but not an aspect graph (no metadata)")
+            text = str(npz["metadata"])
+            missing = [name for name in _ARRAYS if name not in npz.files]
+            if missing:
+                raise AspectGraphError(f"{path} lacks the array(s) {', '.join(missing)}")
+            arrays = {name: npz[name] for name in _ARRAYS}
+    except AspectGraphError:
+        raise
+    except zipfile.BadZipFile as error:
+        raise AspectGraphError(f"{path} fails its zip checksum ({error}): the file was modified after it "
+                               f"was written (tampered with or corrupted); recompile it") from error
+    except Exception as error:  # zipfile, zlib and numpy report damage in different ways
+        raise AspectGraphError(f"{path} is truncated or corrupt ({type(error).__name__}: {error})") from error
+    try:
+        metadata = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise AspectGraphError(f"{path}: its metadata is not valid JSON ({error})") from error
+    if not isinstance(metadata, dict) or metadata.get("format") != FORMAT:
+        raise AspectGraphError(f"{path} is an npz file but not a {FORMAT} (metadata format "
+                               f"{metadata.get('format') if isinstance(metadata, dict) else None!r})")
+    return metadata, arrays
+
+
+def _check_arrays(path: Path, metadata: dict, arrays: dict[str, np.ndarray]) -> None:
+    """Every array has the dtype and shape of the contract, consistent with the others."""
+    n_views = len(arrays["view_directions"])
+    offsets = arrays["seg_offsets"]
+    n_segments = int(offsets[-1]) if offsets.ndim == 1 and len(offsets) else -1
+    sizes = {"V": n_views, "V+1": n_views + 1, "S": n_segments}
+    for name, (dtype, shape) in _ARRAYS.items():
+        a = arrays[name]
+        expected = tuple(sizes[s] if s in sizes else int(s) for s in shape)
+        if a.dtype != dtype or a.shape != expected:
+            raise AspectGraphError(f"{path}: array {name} has dtype {a.dtype} and shape {a.shape}, "
+                                   f"expected {np.dtype(dtype)} and {expected}")
+        listed = metadata.get("arrays", {}).get(name, {})
+        if listed.get("shape") != list(a.shape) or listed.get("dtype") != a.dtype.str:
+            raise AspectGraphError(f"{path}: array {name} does not match the shape/dtype its metadata lists")
+    if offsets[0] != 0 or np.any(np.diff(offsets) < 0):
+        raise AspectGraphError(f"{path}: seg_offsets is not a non-decreasing list starting at 0")
+
+
+# ----------------------------------------------------------------------------- compiling
+
+_remover: HiddenLineRemover | None = None  # one per worker process
+
+
+def _start_worker(step_path: str, options: dict) -> None:
+    global _remover
+    _remover = HiddenLineRemover(load_step(step_path), **options)
+
+
+def _visible_in_worker(task):
+    return _visible(_remover, task)
+
+
+def _visible(remover: HiddenLineRemover, task: tuple[int, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """3D sections and kinds of a run of views (index of the first, their rotations)."""
+    first, rotations = task
+    results = []
+    for i, rotation in enumerate(rotations, start=first):
+        try:
+            view = remover.segments(rotation)
+        except Exception as error:  # OCCT exceptions do not pickle back to the parent
+            raise AspectGraphError(f"hidden-line removal failed for view {i} "
+                                   f"(direction {np.round(rotation[2], 4).tolist()}): {error}") from None
+        results.append((view.segments_3d, view.kinds))
+    return results
+
+
+def _run(part, step_path: str, tasks: list, options: dict, workers: int):
+    """Results of the tasks in order, in this process or in a pool of ``workers``."""
+    if workers == 1:
+        remover = HiddenLineRemover(part, **options)
+        yield from (_visible(remover, task) for task in tasks)
+        return
+    import multiprocessing
+
+    # spawn: a forked child deadlocks in OCCT's STEP reader. Each worker loads the file itself.
+    with multiprocessing.get_context("spawn").Pool(workers, _start_worker, (step_path, options)) as pool:
+        yield from pool.imap(_visible_in_worker, tasks)
+
+
+def compile_aspect_graph(step_path: str | Path, step_deg: float = DEFAULT_STEP_DEG, lonlat: int | None = None,
+                         workers: int | None = None, include_smooth: bool = False,
+                         chord_tolerance: float = DEFAULT_CHORD_TOLERANCE, min_length: float = DEFAULT_MIN_LENGTH,
+                         method: str = DEFAULT_METHOD, progress: bool = True) -> AspectGraph:
+    """Compile the aspect graph of a STEP part.
+
+    Views: a golden-spiral sphere with neighbours ``step_deg`` apart, or with ``lonlat=K``
+    the seed paper's longitude/latitude grid of density K. ``workers`` processes (default:
+    one per CPU) each load the STEP file themselves, since OCCT shapes cannot be sent
+    between processes. ``chord_tolerance`` and ``min_length`` are fractions of the model
+    diameter (``hidden_lines``). Raises CadError for an unusable STEP file and
+    AspectGraphError when a view cannot be computed.
+
+    With several workers the processes are spawned, so a calling script needs the usual
+    ``if __name__ == "__main__":`` guard (the console script and bench have it).
+    """
+    from tqdm import tqdm
+
+    step_path = str(step_path)
+    options = dict(method=method, chord_tolerance=chord_tolerance, min_length=min_length,
+                   include_smooth=include_smooth)
+    HiddenLineRemover.check_options(method, chord_tolerance, min_length)
+    part = load_step(step_path)
+    directions = lonlat_directions(lonlat) if lonlat is not None else fibonacci_directions(step_deg)
+    ups = view_ups(directions)
+    rotations = np.array([look_at_rotation(d, u) for d, u in zip(directions, ups)])
+    workers = max(1, min(workers or os.cpu_count() or 1, len(rotations)))
+    chunk = max(1, min(32, len(rotations) // (4 * workers)))
+    tasks = [(i, rotations[i: i + chunk]) for i in range(0, len(rotations), chunk)]
+    views = []
+    with tqdm(total=len(rotations), unit="view", disable=not progress, desc=Path(step_path).name) as bar:
+        for batch in _run(part, step_path, tasks, options, workers):
+            views.extend(batch)
+            bar.update(len(batch))
+    params = dict(units="m", projection="orthographic", up="geometry.default_up",
+                  sampling="lonlat" if lonlat is not None else "fibonacci",
+                  step_deg=None if lonlat is not None else float(step_deg), lonlat=lonlat,
+                  kinds=list(KIND_NAMES), step_file=Path(step_path).name, **options)
+    return _assemble(part, params, directions, ups, rotations, views)
+
+
+def _assemble(part, params, directions, ups, rotations, views) -> AspectGraph:
+    """Normalise every view's sections and lay them out flat."""
+    seg_2d, norm_centers, norm_scales = [], [], []
+    for i, ((seg_3d, _), rotation) in enumerate(zip(views, rotations)):
+        xy = view_coordinates(seg_3d, rotation, part.center)
+        if len(xy) == 0:
+            raise AspectGraphError(f"view {i} (direction {np.round(directions[i], 4).tolist()}) shows no "
+                                   f"edge longer than the minimum length; lower min_length")
+        norm = normalisation_of(xy)
+        seg_2d.append(norm.apply(xy).astype(np.float32))
+        norm_centers.append(norm.center)
+        norm_scales.append(norm.scale)
+    counts = [len(s) for s in seg_2d]
+    seg_2d = np.concatenate(seg_2d)
+    return AspectGraph(
+        step_sha256=part.sha256, params=params, model_center=np.asarray(part.center, dtype=np.float64),
+        model_diameter=float(part.diameter), n_faces=int(part.n_faces),
+        view_directions=np.asarray(directions, dtype=np.float64), view_ups=np.asarray(ups, dtype=np.float64),
+        view_rotations=np.asarray(rotations, dtype=np.float64),
+        seg_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        seg_2d=seg_2d, seg_3d=np.concatenate([s for s, _ in views]).astype(np.float64),
+        seg_kind=np.concatenate([k for _, k in views]).astype(np.uint8),
+        norm_centers=np.array(norm_centers, dtype=np.float64), norm_scales=np.array(norm_scales, dtype=np.float64),
+        tetrads=tetrads(seg_2d.astype(np.float64)).astype(np.float32))
