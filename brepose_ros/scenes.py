@@ -1,0 +1,379 @@
+"""Synthetic test scenes with exact ground truth, and the loader of any scene folder.
+
+A scene folder is the one of ../shared/CONVENTIONS.md: camera.json, model.step,
+images/NNNNNN.png and gt.json; the generator also writes the part's visible mask to
+masks/NNNNNN.png. Occlusion and clutter follow the seed paper's section 7.2: occluders
+(bars and pipes) in front of the part hide a requested share of it, other shapes lie
+behind it, and the share actually hidden is measured from the masks and recorded.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from .cad import Mesh, load_step, tessellate
+from .camera import Camera, CameraError
+from .geometry import look_at_rotation, normalize, random_rotation, rot_z
+from .render import Material, Placed, rasterize, render
+
+
+class SceneError(ValueError):
+    """A scene folder or scene request that cannot be used, with the reason."""
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """What a generated scene looks like. Shares are of the image's smaller side."""
+
+    width: int = 640
+    height: int = 480
+    fx: float = 600.0
+    span: tuple[float, float] = (0.25, 0.60)  # part's projected size, random in this range
+    elevation: tuple[float, float] | None = None  # degrees above the model XY plane; None: any
+    offcenter: bool = False  # part anywhere in the central 80 % instead of centred
+    occlusion: float = 0.0  # share of the part's silhouette to hide behind an occluder
+    clutter: int = 0  # number of shapes behind the part
+    noise: float = 2.0  # Gaussian noise sigma, grey levels
+    blur: float = 0.6  # Gaussian blur sigma, pixels
+    color: bool = False  # BGR images instead of grey
+
+    def __post_init__(self):
+        lo, hi = self.span
+        if not 0.0 < lo <= hi <= 0.9:
+            raise SceneError(f"span must satisfy 0 < min <= max <= 0.9, got {lo}, {hi}")
+        if not 0.0 <= self.occlusion <= 0.5:
+            raise SceneError(f"occlusion must be within [0, 0.5], got {self.occlusion}")
+        if self.clutter < 0 or self.noise < 0 or self.blur < 0:
+            raise SceneError("clutter, noise and blur must not be negative")
+        if self.elevation is not None and not -90 <= self.elevation[0] <= self.elevation[1] <= 90:
+            raise SceneError(f"elevation band must satisfy -90 <= min <= max <= 90, got {self.elevation}")
+
+    def camera(self) -> Camera:
+        return Camera.from_fov(self.width, self.height, self.fx)
+
+
+@dataclass
+class GroundTruth:
+    """One gt.json entry; ``image`` is the path as written there, ``path`` the resolved file."""
+
+    image: str
+    path: Path
+    R: np.ndarray
+    t: np.ndarray
+    visible_fraction: float | None = None
+    occlusion: float | None = None
+    clutter: int | None = None
+
+
+@dataclass
+class Scene:
+    folder: Path
+    camera: Camera
+    step: Path
+    entries: list[GroundTruth]
+
+
+def box_mesh(dx: float, dy: float, dz: float) -> Mesh:
+    """A box centred at the origin with flat faces (four vertices each)."""
+    half = np.array([dx, dy, dz]) / 2.0
+    vertices, normals, triangles = [], [], []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            u, v = np.eye(3)[(axis + 1) % 3], np.eye(3)[(axis + 2) % 3]
+            if sign < 0:
+                u, v = v, u  # keep u x v = outward normal, so triangles stay counter-clockwise
+            normal = sign * np.eye(3)[axis]
+            corners = [normal + a * u + b * v for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+            base = len(vertices)
+            vertices += [c * half for c in corners]
+            normals += [normal] * 4
+            triangles += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
+    return Mesh(np.array(vertices), np.array(triangles, dtype=np.int32), np.array(normals))
+
+
+def cylinder_mesh(radius: float, length: float, segments: int = 32) -> Mesh:
+    """A closed cylinder along z centred at the origin: smooth side, flat caps."""
+    angles = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
+    ring = np.stack([np.cos(angles), np.sin(angles), np.zeros(segments)], axis=1)
+    lo, hi = np.array([0, 0, -length / 2]), np.array([0, 0, length / 2])
+    k, k1 = np.arange(segments), (np.arange(segments) + 1) % segments
+    # Side: rings 0 (bottom) and 1 (top); caps: their own rings and a centre each.
+    vertices = np.concatenate([radius * ring + lo, radius * ring + hi, radius * ring + lo,
+                               radius * ring + hi, [lo, hi]])
+    up = np.array([0.0, 0.0, 1.0])
+    normals = np.concatenate([ring, ring, np.tile(-up, (segments, 1)), np.tile(up, (segments, 1)),
+                              [-up, up]])
+    s, c = segments, 4 * segments
+    triangles = np.concatenate([
+        np.stack([k, k1, s + k1], axis=1), np.stack([k, s + k1, s + k], axis=1),
+        np.stack([np.full(s, c), 2 * s + k1, 2 * s + k], axis=1),
+        np.stack([np.full(s, c + 1), 3 * s + k, 3 * s + k1], axis=1),
+    ])
+    return Mesh(vertices, triangles.astype(np.int32), normals)
+
+
+def generate_scene(step: str | Path, folder: str | Path, n: int, seed: int = 0,
+                   config: SceneConfig = SceneConfig(), progress: bool = False) -> Scene:
+    """Render ``n`` images of the part in a STEP file into a new scene folder.
+
+    Image i depends only on (seed, i), so a scene can be regrown or extended exactly.
+    """
+    folder = Path(folder)
+    if n < 1:
+        raise SceneError(f"a scene needs at least one image, got n={n}")
+    if folder.exists() and any(folder.iterdir()):
+        raise SceneError(f"{folder} exists and is not empty; choose a new folder")
+    part = load_step(step)
+    mesh = tessellate(part)
+    camera = config.camera()
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    (folder / "masks").mkdir(exist_ok=True)
+    camera.save(folder / "camera.json")
+    shutil.copyfile(step, folder / "model.step")
+    records, entries = [], []
+    for i in tqdm(range(n), desc="rendering", disable=not progress):
+        rng = np.random.default_rng([seed, i])
+        image, mask, R, t, visible = _render_view(rng, mesh, part.center, camera, config)
+        name = f"images/{i:06d}.png"
+        cv2.imwrite(str(folder / name), image)
+        cv2.imwrite(str(folder / f"masks/{i:06d}.png"), mask.astype(np.uint8) * 255)
+        gt = GroundTruth(name, folder / name, R, t, visible, 1.0 - visible, config.clutter)
+        records.append({"image": name, "R": R.reshape(-1).tolist(), "t": t.tolist(),
+                        "visible_fraction": gt.visible_fraction, "occlusion": gt.occlusion,
+                        "clutter": gt.clutter})
+        entries.append(gt)
+    (folder / "gt.json").write_text(json.dumps(records, indent=1) + "\n")
+    return Scene(folder, camera, folder / "model.step", entries)
+
+
+def _render_view(rng: np.random.Generator, mesh: Mesh, center: np.ndarray, camera: Camera,
+                 config: SceneConfig):
+    """One noisy image, the part's visible mask, its pose and its visible share."""
+    R, t = _sample_pose(rng, mesh, center, camera, config)
+    part = Placed(mesh, R, t)
+    alone = rasterize(camera, [part])
+    full = alone.labels == 0
+    objects = [part]
+    if config.occlusion > 0:
+        objects.append(_occluder(rng, camera, alone.depth, config.occlusion, config.color))
+    objects += _clutter(rng, camera, alone.depth, config.clutter, config.color)
+    background = _background(rng, camera, config.color)
+    result = render(camera, objects, background, color=config.color)
+    image = result.image.astype(float)
+    if config.blur > 0:
+        image = cv2.GaussianBlur(image, (0, 0), config.blur)
+    if config.noise > 0:
+        image += rng.normal(0.0, config.noise, image.shape)
+    image = np.clip(np.rint(image), 0, 255).astype(np.uint8)
+    return image, result.mask, R, t, float(result.mask.sum() / full.sum())
+
+
+def _projected_box(mesh: Mesh, R: np.ndarray, t: np.ndarray, camera: Camera) -> np.ndarray:
+    """(u_min, v_min, u_max, v_max) of the projected vertices."""
+    uv = camera.project(mesh.vertices @ R.T + t)
+    return np.concatenate([uv.min(axis=0), uv.max(axis=0)])
+
+
+def _sample_pose(rng, mesh, center, camera, config) -> tuple[np.ndarray, np.ndarray]:
+    """A viewpoint on the sphere (or elevation band), in-plane rotation, distance, offset."""
+    if config.elevation is None:
+        towards_camera = normalize(rng.normal(size=3))
+    else:
+        lo, hi = np.radians(config.elevation)
+        elevation = np.arcsin(rng.uniform(np.sin(lo), np.sin(hi)))  # uniform in area
+        azimuth = rng.uniform(0.0, 2.0 * np.pi)
+        towards_camera = np.array([np.cos(elevation) * np.cos(azimuth),
+                                   np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+    R = rot_z(rng.uniform(0.0, 2.0 * np.pi)) @ look_at_rotation(-towards_camera)
+    side = min(camera.width, camera.height)
+    span = rng.uniform(*config.span)
+    # The projected size is nearly proportional to 1/distance: a few fixed-point steps.
+    extent = np.ptp((mesh.vertices - center) @ R[:2].T, axis=0).max()
+    distance = camera.fx * extent / (span * side) + extent
+    for _ in range(4):
+        box = _projected_box(mesh, R, np.array([0.0, 0.0, distance]) - R @ center, camera)
+        distance *= (box[2:] - box[:2]).max() / (span * side)
+    t = np.array([0.0, 0.0, distance]) - R @ center
+    if not config.offcenter:
+        return R, t
+    box = _projected_box(mesh, R, t, camera)
+    size = np.array([camera.width, camera.height])
+    low, high = 0.1 * size - box[:2], 0.9 * size - 1 - box[2:]
+    shift = rng.uniform(low, high) if (low <= high).all() else np.zeros(2)
+    for _ in range(10):  # perspective changes the box a little when the part moves aside
+        moved = t + distance * np.array([shift[0] / camera.fx, shift[1] / camera.fy, 0.0])
+        box = _projected_box(mesh, R, moved, camera)
+        if (box[:2] >= 0.1 * size).all() and (box[2:] <= 0.9 * size - 1).all():
+            return R, moved
+        shift *= 0.7
+    return R, t
+
+
+def _unit_pixel_ray(camera: Camera, pixel: np.ndarray) -> np.ndarray:
+    return np.array([(pixel[0] - camera.cx) / camera.fx, (pixel[1] - camera.cy) / camera.fy, 1.0])
+
+
+def _scaled(mesh: Mesh, factor: float) -> Mesh:
+    return Mesh(mesh.vertices * factor, mesh.triangles, mesh.normals)
+
+
+PROPS = ("pipe", "bar")
+
+
+def _prop(kind: str, length: float, width: float) -> Mesh:
+    """A "pipe" or a square "bar" along x (sizes in image-plane units at depth 1)."""
+    if kind == "pipe":
+        pipe = cylinder_mesh(width / 2.0, length)
+        swap = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # z axis -> x axis
+        return Mesh(pipe.vertices @ swap.T, pipe.triangles, pipe.normals @ swap.T)
+    return box_mesh(length, width, width)
+
+
+def _at_depth(mesh: Mesh, R: np.ndarray, pixel: np.ndarray, depth: float, camera: Camera,
+              material: Material) -> Placed:
+    """Place a depth-1-sized mesh centred on ``pixel`` at ``depth``: scaling by the depth
+    keeps its image size, a pinhole camera's similar triangles."""
+    return Placed(_scaled(mesh, depth), R, depth * _unit_pixel_ray(camera, pixel), material)
+
+
+def _random_material(rng: np.random.Generator, color: bool) -> Material:
+    grey = rng.uniform(0.25, 0.8)
+    tint = rng.uniform(0.8, 1.2, 3) if color else np.ones(3)
+    return Material(tuple(np.clip(grey * tint, 0.0, 1.0)), rng.uniform(0.05, 0.4), rng.uniform(8, 40))
+
+
+def _occluder(rng: np.random.Generator, camera: Camera, part_depth: np.ndarray, target: float,
+              color: bool) -> Placed:
+    """A bar or pipe in front of the part, slid across it until it hides ``target`` of it.
+
+    The occluder crosses the part broadside from a random direction; the hidden share
+    shrinks as it slides out, so a bisection on the offset meets the target closely. Trial
+    placements are rasterised only over the part's bounding box (a camera cropped to it by
+    shifting the principal point, which is exact).
+    """
+    full = np.isfinite(part_depth)
+    n_full = full.sum()
+    ys, xs = np.nonzero(full)
+    x0, y0 = xs.min(), ys.min()
+    crop = Camera(camera.fx, camera.fy, camera.cx - x0, camera.cy - y0, int(xs.max() - x0 + 1),
+                  int(ys.max() - y0 + 1), camera.distortion)
+    crop_depth = part_depth[y0:y0 + crop.height, x0:x0 + crop.width]
+    center = np.array([xs.mean(), ys.mean()])
+    size = max(np.ptp(xs), np.ptp(ys)) + 1.0
+    z_near = part_depth[full].min()
+    angle = rng.uniform(0.0, 2.0 * np.pi)
+    slide = np.array([np.cos(angle), np.sin(angle)])
+    roll = cv2.Rodrigues(np.array([rng.uniform(0.0, np.pi), 0.0, 0.0]))[0]
+    R = rot_z(angle + np.pi / 2) @ roll  # long axis across the sliding direction
+    material = _random_material(rng, color)
+    kind = rng.choice(PROPS)
+    width = rng.uniform(0.25, 0.45) * size
+
+    def place(offset, unit):
+        # Keep the whole occluder in front of the part's nearest point.
+        depth = 0.9 * z_near / (1.0 + (unit.vertices @ R.T)[:, 2].max())
+        return _at_depth(unit, R, center + offset * slide, depth, camera, material)
+
+    def hidden(occluder):
+        depth = rasterize(crop, [occluder]).depth
+        return (np.isfinite(crop_depth) & (depth < crop_depth)).sum() / n_full
+
+    while True:
+        unit = _prop(kind, 2.0 * size / camera.fx, width / camera.fx)
+        if hidden(place(0.0, unit)) >= target or width > 2.0 * size:
+            break
+        width *= 1.4
+    best, best_error = place(0.0, unit), np.inf
+    low, high = 0.0, size + width
+    for _ in range(14):
+        offset = (low + high) / 2.0
+        candidate = place(offset, unit)
+        share = hidden(candidate)
+        if abs(share - target) < best_error:
+            best, best_error = candidate, abs(share - target)
+        if best_error < 2e-3:
+            break
+        low, high = (offset, high) if share > target else (low, offset)
+    return best
+
+
+def _clutter(rng: np.random.Generator, camera: Camera, part_depth: np.ndarray, count: int,
+             color: bool) -> list[Placed]:
+    """Pipes and boxes anywhere in the image but entirely behind the part."""
+    full = np.isfinite(part_depth)
+    ys, xs = np.nonzero(full)
+    size = max(np.ptp(xs), np.ptp(ys)) + 1.0
+    z_far = part_depth[full].max()
+    props = []
+    for _ in range(count):
+        # At most fx pixels long, so the prop is at most 1 long at depth 1 and fits behind.
+        length = min(rng.uniform(0.3, 1.0) * size, camera.fx) / camera.fx
+        unit = _prop(rng.choice(PROPS), length, rng.uniform(0.1, 0.5) * length)
+        R = random_rotation(rng)
+        nearest = 1.0 + (unit.vertices @ R.T)[:, 2].min()  # > 0.35 by the size bounds
+        depth = z_far * rng.uniform(1.05, 1.6) / nearest
+        pixel = rng.uniform([0.0, 0.0], [camera.width - 1.0, camera.height - 1.0])
+        props.append(_at_depth(unit, R, pixel, depth, camera, _random_material(rng, color)))
+    return props
+
+
+def _background(rng: np.random.Generator, camera: Camera, color: bool) -> np.ndarray:
+    """A grey workbench: a linear gradient, soft blotches and fine grain."""
+    h, w = camera.height, camera.width
+    yy, xx = np.mgrid[0:h, 0:w]
+    angle = rng.uniform(0.0, 2.0 * np.pi)
+    ramp = (np.cos(angle) * xx + np.sin(angle) * yy) / max(h, w)
+    grey = rng.uniform(60.0, 130.0) + rng.uniform(10.0, 40.0) * ramp
+    grey += 6.0 * cv2.resize(rng.normal(size=(6, 8)), (w, h), interpolation=cv2.INTER_CUBIC)
+    grey += 4.0 * cv2.GaussianBlur(rng.normal(size=(h, w)), (0, 0), 1.5)
+    image = grey[..., None] * (rng.uniform(0.92, 1.08, 3) if color else np.ones(1))
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def load_scene(folder: str | Path) -> Scene:
+    """Read a scene folder (synthetic or real), checking everything the evaluator relies on."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise SceneError(f"scene folder {folder} does not exist")
+    try:
+        camera = Camera.load(folder / "camera.json")
+    except CameraError as exc:
+        raise SceneError(f"scene {folder}: {exc}") from None
+    step = folder / "model.step"
+    if not step.is_file():
+        raise SceneError(f"scene {folder} has no model.step")
+    try:
+        records = json.loads((folder / "gt.json").read_text())
+    except FileNotFoundError:
+        raise SceneError(f"scene {folder} has no gt.json") from None
+    except json.JSONDecodeError as exc:
+        raise SceneError(f"{folder / 'gt.json'} is not valid JSON: {exc}") from None
+    if not isinstance(records, list):
+        raise SceneError(f"{folder / 'gt.json'} must hold a list of entries")
+    return Scene(folder, camera, step, [_entry(folder, i, r) for i, r in enumerate(records)])
+
+
+def _entry(folder: Path, index: int, record) -> GroundTruth:
+    where = f"{folder / 'gt.json'} entry {index}"
+    if not isinstance(record, dict) or not isinstance(record.get("image"), str):
+        raise SceneError(f"{where} must be an object with an \"image\" path")
+    try:
+        R = np.array(record["R"], dtype=float).reshape(3, 3)
+        t = np.array(record["t"], dtype=float).reshape(3)
+    except (KeyError, TypeError, ValueError):
+        raise SceneError(f"{where} needs \"R\" (9 numbers) and \"t\" (3 numbers)") from None
+    if not (np.isfinite(R).all() and np.isfinite(t).all()):
+        raise SceneError(f"{where} has a non-finite pose")
+    if not (np.allclose(R @ R.T, np.eye(3), atol=1e-5) and np.linalg.det(R) > 0):
+        raise SceneError(f"{where}: R is not a rotation matrix")
+    path = folder / record["image"]
+    if not path.is_file():
+        raise SceneError(f"{where}: image {path} does not exist")
+    optional = {key: record.get(key) for key in ("visible_fraction", "occlusion", "clutter")}
+    return GroundTruth(record["image"], path, R, t, **optional)
