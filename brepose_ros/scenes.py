@@ -148,7 +148,8 @@ def generate_scene(step: str | Path, folder: str | Path, n: int, seed: int = 0,
                         "visible_fraction": gt.visible_fraction, "occlusion": gt.occlusion,
                         "clutter": gt.clutter})
         entries.append(gt)
-    (folder / "gt.json").write_text(json.dumps(records, indent=1) + "\n")
+    # One entry per line: readable and diffable, full float precision.
+    (folder / "gt.json").write_text("[\n" + ",\n".join(json.dumps(r) for r in records) + "\n]\n")
     return Scene(folder, camera, folder / "model.step", entries)
 
 
