@@ -96,8 +96,9 @@ class HiddenLineRemover:
         if self._mesh is None:
             polylines = _exact_polylines(self.shape, rotation, self.include_smooth, self.chord / 2.0)
         else:
-            polylines = self._mesh.visible_polylines(rotation, self.include_smooth, self.chord / 2.0,
-                                                     self.same_point)
+            # PolyAlgo refines outlines on the exact surface and the candidates are on the
+            # mesh: each may be half the chord tolerance off, hence the whole for the lift.
+            polylines = self._mesh.visible_polylines(rotation, self.include_smooth, self.chord, self.same_point)
         return self._sections(polylines, rotation)
 
     def _sections(self, polylines: list[tuple[np.ndarray, int]], rotation: np.ndarray) -> ViewSegments:
@@ -210,21 +211,22 @@ class _PartMesh:
     def __init__(self, shape, deflection: float):
         from OCP.BRepMesh import BRepMesh_IncrementalMesh
 
-        self.shape = shape
+        from OCP.HLRBRep import HLRBRep_PolyAlgo
+
         BRepMesh_IncrementalMesh(shape, deflection, False, _MESH_ANGLE, True)
         self.edge_segments = _edge_polygons(shape)
         self.nodes, self.normals, self.triangles = _curved_faces_mesh(shape)
+        self.algo = HLRBRep_PolyAlgo()
+        self.algo.Load(shape)
 
     def visible_polylines(self, rotation, include_smooth, tolerance, same_point):
         """Visible pieces from HLRBRep_PolyAlgo, each located on its 3D source segment."""
-        from OCP.HLRBRep import HLRBRep_PolyAlgo, HLRBRep_PolyHLRToShape
+        from OCP.HLRBRep import HLRBRep_PolyHLRToShape
 
-        algo = HLRBRep_PolyAlgo()
-        algo.Load(self.shape)
-        algo.Projector(_projector(rotation))
-        algo.Update()
+        self.algo.Projector(_projector(rotation))
+        self.algo.Update()
         result = HLRBRep_PolyHLRToShape()
-        result.Update(algo)
+        result.Update(self.algo)
         candidates = np.concatenate([self.edge_segments, self.outline_segments(rotation[2])])
         compounds = [(SHARP, result.VCompound()), (OUTLINE, result.OutLineVCompound())]
         if include_smooth:
@@ -333,12 +335,12 @@ def _pieces_2d(compound, same_point: float) -> np.ndarray:
     ends = [(BRep_Tool.Pnt_s(TopExp.FirstVertex_s(e)), BRep_Tool.Pnt_s(TopExp.LastVertex_s(e)))
             for e in _edges(compound)]
     pieces = np.array([[(a.X(), -a.Y()), (b.X(), -b.Y())] for a, b in ends]).reshape(-1, 2, 2)
-    if len(pieces) < 2:
-        return pieces
-    tree = cKDTree(pieces.reshape(-1, 4))
-    copies = [tree.query_ball_point(pieces[:, order].reshape(-1, 4), same_point) for order in ([0, 1], [1, 0])]
-    drop = {j for found in copies for i, group in enumerate(found) for j in group if j > i}
-    return np.delete(pieces, sorted(drop), axis=0)
+    # Orient every piece the same way (by an arbitrary linear functional), then copies are
+    # near-identical 4-vectors.
+    forward = pieces[:, 0] @ [1.0, np.pi] <= pieces[:, 1] @ [1.0, np.pi]
+    canonical = np.where(forward[:, None, None], pieces, pieces[:, ::-1]).reshape(-1, 4)
+    copies = cKDTree(canonical).query_pairs(same_point, output_type="ndarray")
+    return np.delete(pieces, np.unique(copies.max(axis=1)), axis=0)
 
 
 def _lift(points, candidates, rotation, tolerance, neighbours: int = 12):
