@@ -29,6 +29,11 @@ def fibonacci_count(step_deg: float) -> int:
     return max(2, int(round(4.0 * np.pi * (_SPIRAL_SPACING / np.radians(step_deg)) ** 2)))
 
 
+def fibonacci_step(count: int) -> float:
+    """The angular step (degrees) that gives about ``count`` golden-spiral views."""
+    return float(np.degrees(_SPIRAL_SPACING * np.sqrt(4.0 * np.pi / count)))
+
+
 def fibonacci_directions(step_deg: float) -> np.ndarray:
     """(V, 3) near-uniform unit viewing directions with neighbour spacing ~ ``step_deg``."""
     n = fibonacci_count(step_deg)
