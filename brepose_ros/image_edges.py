@@ -1,0 +1,439 @@
+"""The image edge stage (seed paper, section 5): straight line segments of a camera image.
+
+The part is grey metal without texture, so its only reliable features are the straight
+boundaries of its faces. The paper finds them with Canny followed by a "modified Hough"
+transform and then merges the pieces of one edge by nearest-neighbour clustering under a
+contiguity rule (end points close) and a continuity rule (collinear). Here that is:
+
+1. grayscale, float32 on the 0..255 scale (uint16 keeps its finer steps);
+2. Gaussian blur, then Canny with thresholds set from the image's own gradient noise, so
+   that a dim, low-contrast photograph and a bright one give the same edges;
+3. ``cv2.HoughLinesP``, which yields many broken and duplicated pieces per edge;
+4. :func:`merge_segments`, which clusters those pieces around the longest ones and replaces
+   every cluster by one segment on its length-weighted fitted line.
+
+``detector="lsd"`` replaces steps 2-3 by OpenCV's LSD line segment detector (same merge).
+On the synthetic polygons of ``test/test_image_edges.py`` both find every edge; LSD end
+points and angles are somewhat more accurate (sub-pixel gradient fit) but it is ~2x slower
+on a 640x480 image and breaks edges into more pieces under noise. Neither is clearly better,
+so the default stays the paper's Canny + Hough. ``bench/edges.py`` prints the timings.
+
+Coordinates are pixels, x right, y down, pixel centres at integer coordinates.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+DETECTORS = ("hough", "lsd")
+
+#: median / scale of a Rayleigh distribution: the gradient magnitude of pure Gaussian noise
+_RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
+#: Canny takes int16 derivatives; scaling the float Sobel output keeps sub-grey-level steps
+#: (3x3 Sobel of a 0..255 image stays within +-1020, times 16 within int16)
+_DERIVATIVE_SCALE = 16.0
+
+
+def _doc(text: str, default: Any) -> Any:
+    """A dataclass field with its documentation, read by ``params.field_docs`` and the ROS node."""
+    return field(default=default, metadata={"doc": text})
+
+
+@dataclass(frozen=True)
+class EdgeParams:
+    """Every threshold of the image edge stage; lengths in pixels unless named ``*_fraction``."""
+
+    detector: str = _doc("'hough' (Canny + HoughLinesP, the paper's method) or 'lsd' (OpenCV LSD)", "hough")
+    blur_size: int = _doc("odd Gaussian kernel size before edge detection; 1 disables the blur", 5)
+    blur_sigma: float = _doc("Gaussian sigma, pixels; 0 derives it from blur_size", 0.0)
+    canny_noise_factor: float = _doc("Canny high threshold in units of the gradient noise level (median gradient / 1.18)", 5.0)
+    canny_low_ratio: float = _doc("Canny low threshold as a share of the high one", 0.4)
+    canny_min_high: float = _doc("floor of the Canny high threshold (Sobel magnitude of a 0..255 image) for noise-free images", 6.0)
+    hough_rho: float = _doc("HoughLinesP distance resolution, pixels", 1.0)
+    hough_theta_deg: float = _doc("HoughLinesP angle resolution, degrees", 1.0)
+    hough_vote_ratio: float = _doc("HoughLinesP accumulator threshold as a share of the minimum line length", 0.5)
+    raw_min_length_fraction: float = _doc("shortest raw segment before merging (HoughLinesP minLineLength; shorter LSD pieces are dropped), share of the image diagonal", 0.015)
+    hough_max_gap: float = _doc("largest gap HoughLinesP bridges inside one segment, pixels", 3.0)
+    merge_angle_deg: float = _doc("pieces of one edge differ in direction by at most this, degrees", 2.0)
+    merge_distance: float = _doc("both end points of a piece lie this close to the edge's fitted line, pixels", 2.0)
+    merge_gap: float = _doc("largest gap along the line between pieces of one edge, pixels", 15.0)
+    refine: bool = _doc("refit each merged Hough segment to the Canny pixels along it and extend it over them", True)
+    min_length_fraction: float = _doc("merged segments shorter than this share of the image diagonal are dropped", 0.03)
+    max_segments: int = _doc("at most this many merged segments are kept, longest first", 200)
+
+    def __post_init__(self):
+        if self.detector not in DETECTORS:
+            raise ValueError(f"detector must be one of {DETECTORS}, got {self.detector!r}")
+        if self.blur_size < 1 or self.blur_size % 2 == 0:
+            raise ValueError(f"blur_size must be a positive odd integer, got {self.blur_size}")
+        positive = ("canny_noise_factor", "canny_min_high", "hough_rho", "hough_theta_deg",
+                    "hough_vote_ratio", "merge_angle_deg", "max_segments")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if not 0 < self.canny_low_ratio <= 1:
+            raise ValueError(f"canny_low_ratio must be in (0, 1], got {self.canny_low_ratio}")
+        non_negative = ("blur_sigma", "raw_min_length_fraction", "hough_max_gap",
+                        "merge_distance", "merge_gap", "min_length_fraction")
+        for name in non_negative:
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
+
+
+def extract_segments(image: np.ndarray, params: EdgeParams = EdgeParams()) -> np.ndarray:
+    """Merged straight line segments (N, 2, 2) float64 of an image, longest first.
+
+    ``image`` is uint8 or uint16 (float is read on the uint8 scale), gray (H, W) or
+    (H, W, 1), BGR or BGRA (H, W, 3|4). A constant image has no edges and gives (0, 2, 2).
+    """
+    gray = to_gray(image)
+    if gray.max() == gray.min():
+        return np.zeros((0, 2, 2))
+    if params.detector == "lsd":
+        merged = merge_segments(lsd_segments(gray, params), params)
+    else:
+        edges = canny_edges(gray, params)
+        merged = merge_segments(hough_segments(edges, params), params)
+        if params.refine:
+            merged = merge_segments(refine_segments(merged, edges, params), params)
+    lengths = np.linalg.norm(merged[:, 1] - merged[:, 0], axis=1)
+    merged = merged[lengths >= params.min_length_fraction * float(np.hypot(*gray.shape))]
+    return merged[: params.max_segments]
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """Validated float32 gray image on the 0..255 scale; ValueError says what is wrong."""
+    image = np.asarray(image)
+    if image.ndim not in (2, 3):
+        raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
+    if image.size == 0:
+        raise ValueError(f"image is empty, shape {image.shape}")
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    if channels not in (1, 3, 4):
+        raise ValueError(f"image must have 1, 3 (BGR) or 4 (BGRA) channels, got {channels}")
+    if image.dtype == np.uint8:
+        gray = image.astype(np.float32)
+    elif image.dtype == np.uint16:
+        gray = image.astype(np.float32) / 257.0
+    elif np.issubdtype(image.dtype, np.floating):
+        if not np.all(np.isfinite(image)):
+            raise ValueError("image contains NaN or infinite values")
+        gray = image.astype(np.float32)
+    else:
+        raise ValueError(f"image dtype must be uint8, uint16 or float, got {image.dtype}")
+    if channels == 3:
+        gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
+    elif channels == 4:
+        gray = cv2.cvtColor(gray, cv2.COLOR_BGRA2GRAY)
+    return gray.reshape(image.shape[:2])
+
+
+def canny_thresholds(magnitude: np.ndarray, params: EdgeParams) -> tuple[float, float]:
+    """(low, high) Canny thresholds on the Sobel magnitude scale, from the image's own noise.
+
+    Most pixels of an image of a part lie on flat faces, where the gradient is noise whose
+    magnitude is Rayleigh distributed; its median therefore measures the noise, and a high
+    threshold of a few noise units keeps edges that stand out of it however faint. A
+    percentile of the magnitude would not do: it marks a fixed share of pixels as edges
+    even in a blank image.
+    """
+    noise = float(np.median(magnitude)) / _RAYLEIGH_MEDIAN
+    high = max(params.canny_noise_factor * noise, params.canny_min_high)
+    return params.canny_low_ratio * high, high
+
+
+def canny_edges(gray: np.ndarray, params: EdgeParams) -> np.ndarray:
+    """uint8 edge map (255 on edges) of a :func:`to_gray` image: blur, then adaptive Canny."""
+    if params.blur_size > 1:
+        gray = cv2.GaussianBlur(gray, (params.blur_size, params.blur_size), params.blur_sigma)
+    dx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
+    dy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+    low, high = canny_thresholds(cv2.magnitude(dx, dy), params)
+    dx16 = np.round(dx * _DERIVATIVE_SCALE).astype(np.int16)
+    dy16 = np.round(dy * _DERIVATIVE_SCALE).astype(np.int16)
+    return cv2.Canny(dx16, dy16, low * _DERIVATIVE_SCALE, high * _DERIVATIVE_SCALE, L2gradient=True)
+
+
+def hough_segments(edges: np.ndarray, params: EdgeParams) -> np.ndarray:
+    """Raw (N, 2, 2) segments of a Canny edge map by probabilistic Hough, before merging."""
+    min_length = params.raw_min_length_fraction * float(np.hypot(*edges.shape))
+    lines = cv2.HoughLinesP(
+        edges,
+        rho=params.hough_rho,
+        theta=np.deg2rad(params.hough_theta_deg),
+        threshold=max(1, round(params.hough_vote_ratio * min_length)),
+        minLineLength=min_length,
+        maxLineGap=params.hough_max_gap,
+    )
+    if lines is None:
+        return np.zeros((0, 2, 2))
+    return lines.reshape(-1, 2, 2).astype(np.float64)
+
+
+def lsd_segments(gray: np.ndarray, params: EdgeParams) -> np.ndarray:
+    """Raw (N, 2, 2) segments of OpenCV's LSD, which fits its own gradient (no Canny).
+
+    LSD returns many pieces of a few pixels, whose direction is meaningless; they are
+    dropped here like HoughLinesP drops them (``raw_min_length_fraction``).
+    """
+    if params.blur_size > 1:
+        gray = cv2.GaussianBlur(gray, (params.blur_size, params.blur_size), params.blur_sigma)
+    image = np.clip(np.round(gray), 0, 255).astype(np.uint8)
+    lines = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD).detect(image)[0]
+    if lines is None:
+        return np.zeros((0, 2, 2))
+    lines = lines.reshape(-1, 2, 2).astype(np.float64)
+    lengths = np.linalg.norm(lines[:, 1] - lines[:, 0], axis=1)
+    return lines[lengths >= params.raw_min_length_fraction * float(np.hypot(*gray.shape))]
+
+
+def merge_segments(segments: np.ndarray, params: EdgeParams) -> np.ndarray:
+    """One segment per straight edge out of its broken and duplicated pieces, longest first.
+
+    Nearest-neighbour clustering under the paper's two rules: a piece joins an edge if it
+    is nearly parallel to it (``merge_angle_deg``, widened by 1 pixel over the piece's
+    length because a short piece's direction is that uncertain), lies on it (both end
+    points within ``merge_distance``: continuity) and overlaps it or is chained to it along
+    the line through gaps up to ``merge_gap`` (contiguity).
+
+    Pairs of pieces passing these tests on the longer one's line are found at once
+    (angle-sorted windows, numpy) and linked into groups; a piece without partner is kept
+    as it is. Inside a group the longest free piece seeds an edge that absorbs the pieces
+    compatible with its fitted line, refitting as it grows. Testing against the fitted
+    line rather than chaining pairs keeps a run of slightly turning pieces (a curved edge)
+    from collapsing into one long chord. The merged segment spans the projections of its
+    pieces' end points onto the line. A seed's line, extrapolated from one piece, can strand
+    distant pieces of its edge, so the result is merged again until nothing changes.
+    """
+    merged = _merge_once(segments, params)
+    while len(merged) > 1:
+        again = _merge_once(merged, params)
+        if len(again) == len(merged):
+            break
+        merged = again
+    return merged
+
+
+def _merge_once(segments: np.ndarray, params: EdgeParams) -> np.ndarray:
+    """One clustering pass of :func:`merge_segments`."""
+    segments = np.asarray(segments, dtype=np.float64).reshape(-1, 2, 2)
+    lengths = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
+    segments, lengths = segments[lengths > 0], lengths[lengths > 0]
+    if len(segments) == 0:
+        return np.zeros((0, 2, 2))
+    unit = (segments[:, 1] - segments[:, 0]) / lengths[:, None]
+    tolerance = np.minimum(np.deg2rad(params.merge_angle_deg) + np.arctan(1.0 / lengths), np.pi / 2)
+    sin_tolerance = np.sin(tolerance)
+
+    i, j = _candidate_pairs(np.arctan2(unit[:, 1], unit[:, 0]) % np.pi, tolerance + tolerance.max())
+    longer = np.where(lengths[i] >= lengths[j], i, j)
+    shorter = i + j - longer
+    joins = _joins(segments[shorter], unit[shorter], sin_tolerance[shorter],
+                   segments[longer, 0], unit[longer], 0.0, lengths[longer], params)
+    n = len(segments)
+    graph = coo_matrix((np.ones(joins.sum()), (i[joins], j[joins])), shape=(n, n))
+    label = connected_components(graph, directed=False)[1]
+    single = np.bincount(label)[label] == 1
+
+    merged = [segments[single]]
+    grouped = np.flatnonzero(~single)
+    grouped = grouped[np.lexsort((-lengths[grouped], label[grouped]))]  # by group, longest first
+    for group in np.split(grouped, np.flatnonzero(np.diff(label[grouped])) + 1):
+        if len(group):
+            merged.append(_grow_edges(segments, unit, lengths, sin_tolerance, group, params))
+    merged = np.concatenate(merged)
+    return merged[np.argsort(-np.linalg.norm(merged[:, 1] - merged[:, 0], axis=1), kind="stable")]
+
+
+def _candidate_pairs(angle: np.ndarray, window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i, j), i != j, whose directions in [0, pi) differ (mod pi) by at most window[i].
+
+    Only j at or after i in direction order is looked at, so ``window`` must bound the
+    pair's tolerance from either side (tolerance[i] + max tolerance does).
+    """
+    n = len(angle)
+    order = np.argsort(angle)
+    sorted_angle, sorted_window = angle[order], window[order]
+    wraps = sorted_angle < sorted_window.max()  # also compared with the directions just below pi
+    extended_angle = np.concatenate([sorted_angle, sorted_angle[wraps] + np.pi])
+    extended_index = np.concatenate([order, order[wraps]])
+    reach = np.searchsorted(extended_angle, sorted_angle + sorted_window, side="right")
+    counts = np.minimum(reach, np.arange(n) + n) - np.arange(n) - 1  # never back round to i
+    first = np.repeat(np.arange(n), counts)
+    second = first + 1 + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    i, j = order[first], extended_index[second]
+    return i[i != j], j[i != j]
+
+
+def _joins(pieces, units, sin_tolerance, origin, axis, lo, hi, params: EdgeParams, chained=False) -> np.ndarray:
+    """Which pieces (K, 2, 2) belong to the line(s) origin + t axis spanning t in [lo, hi].
+
+    ``origin``/``axis`` are (2,) for one line or (K, 2) for one line per piece. With
+    ``chained`` (one line) a piece may also be reached through other joining pieces.
+    """
+    normal = np.stack([-axis[..., 1], axis[..., 0]], axis=-1)
+    offsets = pieces - origin[..., None, :]
+    t = (offsets * axis[..., None, :]).sum(axis=-1)
+    distance = np.abs((offsets * normal[..., None, :]).sum(axis=-1)).max(axis=-1)
+    on_line = (np.abs((units * normal).sum(axis=-1)) <= sin_tolerance) & (distance <= params.merge_distance)
+    if chained:
+        on_line[on_line] = _chained(t[on_line].min(axis=-1), t[on_line].max(axis=-1), lo, hi, params.merge_gap)
+        return on_line
+    return on_line & (np.maximum(t.min(axis=-1) - hi, lo - t.max(axis=-1)) <= params.merge_gap)
+
+
+def _grow_edges(segments, unit, lengths, sin_tolerance, group: np.ndarray, params: EdgeParams) -> np.ndarray:
+    """Merged segments (M, 2, 2) of one group of linked pieces, ``group`` sorted longest first."""
+    merged = []
+    free = group
+    while len(free):
+        members, free = free[:1], free[1:]
+        centre, axis = segments[members[0]].mean(axis=0), unit[members[0]]
+        while len(free):
+            t = (segments[members] - centre) @ axis
+            joins = _joins(segments[free], unit[free], sin_tolerance[free], centre, axis, t.min(), t.max(), params,
+                           chained=True)
+            if not joins.any():
+                break
+            members, free = np.concatenate([members, free[joins]]), free[~joins]
+            centre, axis = _fit_line(segments[members], lengths[members], axis)
+        t = (segments[members] - centre) @ axis
+        merged.append([centre + t.min() * axis, centre + t.max() * axis])
+    return np.asarray(merged)
+
+
+def _chained(lo: np.ndarray, hi: np.ndarray, start: float, end: float, gap: float) -> np.ndarray:
+    """Which intervals [lo, hi] connect to [start, end], directly or through each other, with gaps <= gap."""
+    all_lo, all_hi = np.r_[start, lo], np.r_[end, hi]
+    order = np.argsort(all_lo, kind="stable")
+    reach = np.maximum.accumulate(all_hi[order])
+    chain = np.empty(len(order), dtype=int)
+    chain[order] = np.r_[0, np.cumsum(all_lo[order][1:] > reach[:-1] + gap)]
+    return chain[1:] == chain[0]
+
+
+def refine_segments(segments: np.ndarray, edges: np.ndarray, params: EdgeParams) -> np.ndarray:
+    """Segments refitted to the Canny pixels along them and extended over contiguous ones.
+
+    Hough end points are single quantised pixels, and under noise HoughLinesP often loses
+    the ends of an edge, especially near corners where blur bends the edge away from its
+    line. The edge pixels within ``merge_distance`` of a segment's line are collected, the
+    segment is extended over those that continue it in steps up to ``hough_max_gap``, and a
+    least-squares line through the pixels of the extended span gives the result. Pixels are
+    looked for up to ``merge_gap`` beyond each end; segments that grew that far look again
+    from their new ends. A segment with fewer than two pixels is kept as it is. Pieces of
+    one edge may overlap afterwards: run :func:`merge_segments` again.
+    """
+    refined = np.array(segments, dtype=np.float64).reshape(-1, 2, 2)
+    active = np.flatnonzero(np.linalg.norm(refined[:, 1] - refined[:, 0], axis=1) > 0)
+    reach = params.merge_gap - params.hough_max_gap  # grown this far: more pixels may follow
+    for _ in range(int(np.hypot(*edges.shape) / max(reach, 1.0)) + 1):
+        if len(active) == 0:
+            break
+        before = refined[active]
+        refined[active] = _refine_once(before, edges, params)
+        length = np.linalg.norm(before[:, 1] - before[:, 0], axis=1)
+        axis = (before[:, 1] - before[:, 0]) / length[:, None]
+        t = ((refined[active] - before[:, :1]) * axis[:, None]).sum(axis=-1)
+        active = active[(reach > 0) & ((t[:, 0] < -reach) | (t[:, 1] > length + reach))]
+    return refined
+
+
+def _refine_once(segments: np.ndarray, edges: np.ndarray, params: EdgeParams) -> np.ndarray:
+    """One round of :func:`refine_segments` for segments of non-zero length, all at once."""
+    n = len(segments)
+    lengths = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
+    owner, pixels, t = _pixels_along(segments, edges, params)
+    # the segment's own span counts as filled: add its two ends as virtual points
+    owner = np.concatenate([owner, np.arange(n), np.arange(n)])
+    t = np.concatenate([t, np.zeros(n), lengths])
+    virtual = np.arange(len(owner)) >= len(pixels)
+    order = np.lexsort((t, owner))
+    owner, t, virtual = owner[order], t[order], virtual[order]
+    pixels = np.concatenate([pixels, np.zeros((2 * n, 2))])[order]
+    inside = (t >= 0) & (t <= lengths[owner])
+    step = np.diff(t)
+    breaks = (np.diff(owner) != 0) | ((step > params.hough_max_gap) & ~(inside[:-1] & inside[1:]))
+    run = np.concatenate([[0], np.cumsum(breaks)])
+    core = np.zeros(n, dtype=int)
+    core[owner[virtual]] = run[virtual]  # both virtual points of a segment share its run
+    keep = ~virtual & (run == core[owner])
+    owner, pixels = owner[keep], pixels[keep]
+
+    count = np.bincount(owner, minlength=n).astype(float)
+    fitted = np.flatnonzero(count >= 2)
+    weight = np.maximum(count, 1.0)
+    centre = np.stack([np.bincount(owner, pixels[:, k], minlength=n) for k in (0, 1)], axis=1) / weight[:, None]
+    d = pixels - centre[owner]
+    cxx, cyy, cxy = (np.bincount(owner, a * b, minlength=n) for a, b in ((d[:, 0], d[:, 0]), (d[:, 1], d[:, 1]), (d[:, 0], d[:, 1])))
+    angle = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)  # principal axis of the pixel scatter
+    axis = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    first = np.searchsorted(owner, fitted)  # pixels are sorted along each segment
+    last = np.searchsorted(owner, fitted, side="right") - 1
+    refined = segments.copy()
+    for end, index in ((0, first), (1, last)):
+        along = ((pixels[index] - centre[fitted]) * axis[fitted]).sum(axis=1)
+        refined[fitted, end] = centre[fitted] + along[:, None] * axis[fitted]
+    return refined
+
+
+def _pixels_along(segments: np.ndarray, edges: np.ndarray, params: EdgeParams):
+    """(owner, pixel (x, y), t) of the edge pixels near each segment's line and span.
+
+    t is the position along the segment from its first end point; the span reaches
+    ``merge_gap`` beyond either end. Stepping one pixel along the major axis and a few
+    across it visits every pixel of the band exactly once per segment.
+    """
+    first = segments[:, 0]
+    unit = (segments[:, 1] - first) / np.linalg.norm(segments[:, 1] - first, axis=1)[:, None]
+    steep = np.abs(unit[:, 1]) > np.abs(unit[:, 0])
+    major_first = np.where(steep, first[:, 1], first[:, 0])
+    minor_first = np.where(steep, first[:, 0], first[:, 1])
+    major_unit = np.where(steep, unit[:, 1], unit[:, 0])  # |major_unit| >= 1 / sqrt(2)
+    minor_unit = np.where(steep, unit[:, 0], unit[:, 1])
+    reach = np.linalg.norm(segments[:, 1] - first, axis=1) + params.merge_gap
+    ends = major_first[:, None] + np.stack([np.full_like(reach, -params.merge_gap), reach], axis=1) * major_unit[:, None]
+    lo, hi = np.ceil(ends.min(axis=1)).astype(int), np.floor(ends.max(axis=1)).astype(int)
+    counts = np.maximum(hi - lo + 1, 0)
+    owner = np.repeat(np.arange(len(segments)), counts)
+    major = lo[owner] + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    minor_centre = minor_first[owner] + (major - major_first[owner]) * minor_unit[owner] / major_unit[owner]
+    half = int(np.ceil(params.merge_distance * np.sqrt(2) + 0.5))  # rounding of the centre
+    across = np.arange(-half, half + 1)
+    minor = np.round(minor_centre)[:, None].astype(int) + across
+    major = np.broadcast_to(major[:, None], minor.shape)
+    owner = np.broadcast_to(owner[:, None], minor.shape)
+    x = np.where(steep[owner], minor, major).ravel()
+    y = np.where(steep[owner], major, minor).ravel()
+    owner = owner.ravel()
+    height, width = edges.shape
+    hit = (x >= 0) & (x < width) & (y >= 0) & (y < height)
+    hit[hit] = edges[y[hit], x[hit]] > 0
+    owner, pixels = owner[hit], np.stack([x[hit], y[hit]], axis=1).astype(np.float64)
+    offsets = pixels - first[owner]
+    t = (offsets * unit[owner]).sum(axis=1)
+    distance = np.abs(offsets[:, 0] * unit[owner, 1] - offsets[:, 1] * unit[owner, 0])
+    near = distance <= params.merge_distance
+    return owner[near], pixels[near], t[near]
+
+
+def _fit_line(segments: np.ndarray, lengths: np.ndarray, previous_axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centre and unit direction of the line through segments, every point of them weighted alike.
+
+    A segment of length l, midpoint m and direction u contributes l (m - c)(m - c)^T +
+    l^3 / 12 u u^T to the scatter matrix, so long pieces dominate and short noisy ones
+    barely tilt the line. The direction keeps the sign of ``previous_axis``.
+    """
+    mid = segments.mean(axis=1)
+    centre = (lengths[:, None] * mid).sum(axis=0) / lengths.sum()
+    offset = mid - centre
+    unit = (segments[:, 1] - segments[:, 0]) / lengths[:, None]
+    scatter = np.einsum("n,ni,nj->ij", lengths, offset, offset)
+    scatter += np.einsum("n,ni,nj->ij", lengths**3 / 12.0, unit, unit)
+    axis = np.linalg.eigh(scatter)[1][:, -1]
+    return centre, axis if axis @ previous_axis >= 0 else -axis

@@ -1,0 +1,230 @@
+"""Image edge stage against exact ground truth: polygons drawn with cv2, then blurred and noised."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from brepose_ros.image_edges import EdgeParams, canny_edges, canny_thresholds, extract_segments, merge_segments, to_gray
+
+BACKGROUND = 110.0
+SIZE = (480, 640)
+
+
+def rectangle(cx, cy, w, h, deg):
+    return cv2.boxPoints(((cx, cy), (w, h), deg)).astype(np.float64)
+
+
+def hexagon(cx, cy, radius, deg):
+    angle = np.deg2rad(deg + 60.0 * np.arange(6))
+    return np.stack([cx + radius * np.cos(angle), cy + radius * np.sin(angle)], axis=1)
+
+
+SCENE = [rectangle(170, 150, 220, 120, 17), hexagon(460, 300, 110, 10), rectangle(200, 360, 160, 90, -35)]
+GREYS = [170.0, 60.0, 145.0]
+
+
+def draw(polygons, greys, noise=4.0, seed=0, size=SIZE):
+    """uint8 image of filled polygons (sub-pixel vertices) on the background, blurred, noised."""
+    image = np.full(size, BACKGROUND, np.float32)
+    for polygon, grey in zip(polygons, greys):
+        mask = np.zeros(size, np.uint8)
+        cv2.fillPoly(mask, [np.round(polygon * 16).astype(np.int32)], 255, shift=4)
+        image[mask > 0] = grey
+    image = cv2.GaussianBlur(image, (0, 0), 1.0)
+    image += np.random.default_rng(seed).normal(0.0, noise, size).astype(np.float32)
+    return np.clip(np.round(image), 0, 255).astype(np.uint8)
+
+
+def true_edges(polygons):
+    return [np.array([p[i], p[(i + 1) % len(p)]]) for p in polygons for i in range(len(p))]
+
+
+def along(edge, segments, distance=3.0, degrees=3.0):
+    """Segments lying on the edge's line (both ends within distance) and overlapping it."""
+    a, b = edge
+    length = np.linalg.norm(b - a)
+    u = (b - a) / length
+    n = np.array([-u[1], u[0]])
+    d = segments[:, 1] - segments[:, 0]
+    cos = np.abs(d @ u) / np.linalg.norm(d, axis=1)
+    t = (segments - a) @ u
+    on_line = (np.abs((segments - a) @ n).max(axis=1) <= distance) & (cos >= np.cos(np.deg2rad(degrees)))
+    return segments[on_line & (t.max(axis=1) > 0) & (t.min(axis=1) < length)]
+
+
+def assert_recovered(edge, segments, end_tolerance=3.0, angle_tolerance=1.0):
+    """Exactly one segment covers the edge, with both end points and its angle accurate."""
+    found = along(edge, segments)
+    assert len(found) == 1, f"edge {edge.tolist()}: {len(found)} segments along it: {found.tolist()}"
+    s = found[0]
+    ends = min(max(np.linalg.norm(s[0] - edge[0]), np.linalg.norm(s[1] - edge[1])),
+               max(np.linalg.norm(s[0] - edge[1]), np.linalg.norm(s[1] - edge[0])))
+    assert ends <= end_tolerance, f"edge {edge.tolist()}: end points off by {ends:.2f} px: {s.tolist()}"
+    d, e = s[1] - s[0], edge[1] - edge[0]
+    angle = np.degrees(np.arccos(min(1.0, abs(d @ e) / np.linalg.norm(d) / np.linalg.norm(e))))
+    assert angle <= angle_tolerance, f"edge {edge.tolist()}: angle off by {angle:.2f} deg"
+
+
+@pytest.mark.parametrize("detector, seed", [("hough", 0), ("hough", 1), ("lsd", 0)])
+def test_every_polygon_edge_is_one_accurate_segment(detector, seed):
+    segments = extract_segments(draw(SCENE, GREYS, seed=seed), EdgeParams(detector=detector))
+    assert segments.dtype == np.float64 and segments.shape[1:] == (2, 2)
+    for edge in true_edges(SCENE):
+        assert_recovered(edge, segments)
+    assert len(segments) == len(true_edges(SCENE)), "spurious segments"
+    lengths = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
+    assert np.all(np.diff(lengths) <= 0), "not longest first"
+
+
+def test_low_contrast_image_still_finds_every_edge():
+    """A dim image (contrast 5-9 grey levels, noise 1) lowers the thresholds instead of losing edges."""
+    dim_greys = [BACKGROUND + 0.15 * (g - BACKGROUND) for g in GREYS]
+    dim = draw(SCENE, dim_greys, noise=1.0)
+    segments = extract_segments(dim)
+    for edge in true_edges(SCENE):
+        assert_recovered(edge, segments)
+    params = EdgeParams()
+    bright_high = canny_thresholds(_gradient(draw(SCENE, GREYS, noise=4.0)), params)[1]
+    dim_high = canny_thresholds(_gradient(dim), params)[1]
+    assert dim_high < bright_high / 2
+    assert np.count_nonzero(cv2.Canny(dim, 50, 150)) < 20, "a fixed threshold would have found these edges too"
+
+
+def _gradient(image):
+    blurred = cv2.GaussianBlur(to_gray(image), (5, 5), 0)
+    return cv2.magnitude(cv2.Sobel(blurred, cv2.CV_32F, 1, 0), cv2.Sobel(blurred, cv2.CV_32F, 0, 1))
+
+
+def test_broken_line_merges_into_one_segment():
+    """Collinear blocks with 8 px gaps: their common top edge comes out whole."""
+    angle = np.deg2rad(8.0)
+    u, n = np.array([np.cos(angle), np.sin(angle)]), np.array([-np.sin(angle), np.cos(angle)])
+    start = np.array([80.0, 200.0])
+    blocks = [np.array([start + a * u, start + (a + 60) * u, start + (a + 60) * u + 50 * n, start + a * u + 50 * n])
+              for a in range(0, 5 * 68, 68)]
+    segments = extract_segments(draw(blocks, [175.0] * len(blocks)))
+    top = np.array([start, start + (4 * 68 + 60) * u])
+    assert_recovered(top, segments)
+
+
+def test_vertical_and_horizontal_steps_land_between_their_pixels():
+    """x right, y down, pixel centres at integers: a step between columns 99 and 100 is at x = 99.5."""
+    image = np.full(SIZE, 60, np.uint8)
+    image[:, 100:] = 180  # vertical step
+    image[300:, :] = 20  # horizontal step
+    segments = extract_segments(image)
+    vertical = segments[np.abs(segments[:, 1, 0] - segments[:, 0, 0]) < 1]
+    horizontal = segments[np.abs(segments[:, 1, 1] - segments[:, 0, 1]) < 1]
+    assert len(vertical) == 1 and len(horizontal) == 1
+    assert np.all(np.abs(vertical[0, :, 0] - 99.5) <= 0.6)
+    assert np.all(np.abs(horizontal[0, :, 1] - 299.5) <= 0.6)
+    assert sorted(vertical[0, :, 1]) == pytest.approx([0, 299], abs=3)
+    assert sorted(horizontal[0, :, 0]) == pytest.approx([0, 639], abs=3)
+
+
+def test_duplicates_and_broken_pieces_collapse_but_neighbours_stay():
+    """Pieces of one line (gaps, 1 px offsets, jitter) become one; a parallel line 8 px off does not join."""
+    rng = np.random.default_rng(3)
+    u = np.array([np.cos(0.3), np.sin(0.3)])
+    n = np.array([-u[1], u[0]])
+    origin = np.array([100.0, 50.0])
+    pieces = []
+    for a, b in [(0, 80), (86, 150), (155, 240), (248, 300), (20, 130), (140, 290)]:  # broken + duplicates
+        shift = rng.uniform(-0.8, 0.8, size=2)
+        pieces.append([origin + a * u + shift[0] * n, origin + b * u + shift[1] * n])
+    parallel = [[origin + 8 * n, origin + 300 * u + 8 * n]]
+    beyond = [[origin + 340 * u, origin + 400 * u]]  # collinear, 40 px gap
+    merged = merge_segments(np.array(pieces + parallel + beyond), EdgeParams())
+    assert len(merged) == 3
+    line = merged[0]
+    ends = np.sort((line - origin) @ u)
+    assert ends == pytest.approx([0, 300], abs=1.0)
+    assert np.abs((line - origin) @ n).max() < 0.5
+
+
+def test_curved_edge_is_not_collapsed_into_one_chord():
+    """Short pieces along an arc turn little from piece to piece, but no merged segment leaves the arc."""
+    radius, centre = 300.0, np.array([0.0, 0.0])
+    angles = np.deg2rad(np.linspace(0, 90, 31))
+    points = centre + radius * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    merged = merge_segments(np.stack([points[:-1], points[1:]], axis=1), EdgeParams())
+    assert len(merged) >= 4
+    mid = merged.mean(axis=1)
+    sagitta = radius - np.linalg.norm(mid - centre, axis=1)
+    assert sagitta.max() <= 2 * EdgeParams().merge_distance
+
+
+def test_merge_of_a_thousand_pieces_finds_every_line():
+    """100 lines (10 directions x 10 offsets) cut into 11 jittered pieces each: 100 merged lines."""
+    rng = np.random.default_rng(7)
+    pieces = []
+    for k in range(10):
+        u = np.array([np.cos(np.deg2rad(18 * k)), np.sin(np.deg2rad(18 * k))])
+        n = np.array([-u[1], u[0]])
+        for offset in range(10):
+            origin = np.array([320.0, 240.0]) + (offset - 4.5) * 40 * n - 200 * u
+            cuts = np.linspace(0, 400, 12)[1:-1] + rng.uniform(-10, 10, 10)
+            for a, b in zip(np.r_[0, cuts + 4], np.r_[cuts, 400]):  # 4 px gaps
+                pieces.append([origin + a * u + rng.normal(0, 0.3) * n, origin + b * u + rng.normal(0, 0.3) * n])
+    merged = merge_segments(np.array(pieces), EdgeParams())
+    assert len(pieces) >= 1000
+    assert len(merged) == 100
+    assert np.linalg.norm(merged[:, 1] - merged[:, 0], axis=1) == pytest.approx(400, abs=2)
+
+
+@pytest.mark.parametrize("noise", [4.0, 12.0])
+def test_noisy_blank_image_gives_few_segments(noise):
+    image = np.clip(np.random.default_rng(0).normal(120, noise, SIZE), 0, 255).astype(np.uint8)
+    assert len(extract_segments(image)) <= 2
+    assert np.count_nonzero(canny_edges(to_gray(image), EdgeParams())) < 500
+
+
+@pytest.mark.parametrize("image", [
+    np.full(SIZE, 77, np.uint8),
+    np.full(SIZE + (3,), 4000, np.uint16),
+    np.full((5, 7, 4), 255, np.uint8),
+    np.zeros((1, 1), np.float32),
+])
+def test_constant_image_gives_no_segments(image):
+    segments = extract_segments(image)
+    assert segments.shape == (0, 2, 2) and segments.dtype == np.float64
+
+
+def test_gray_colour_and_depth_variants_agree():
+    gray = draw(SCENE, GREYS)
+    expected = extract_segments(gray)
+    variants = [gray[:, :, None], cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR), cv2.cvtColor(gray, cv2.COLOR_GRAY2BGRA),
+                gray.astype(np.uint16) * 257, gray.astype(np.float32)]
+    for image in variants:
+        np.testing.assert_allclose(extract_segments(image), expected, atol=1e-6)
+
+
+@pytest.mark.parametrize("image, message", [
+    (np.zeros((0, 0), np.uint8), "empty"),
+    (np.zeros((0, 5, 3), np.uint8), "empty"),
+    (np.zeros(10, np.uint8), "shape"),
+    (np.zeros((4, 4, 3, 1), np.uint8), "shape"),
+    (np.zeros((4, 4, 2), np.uint8), "channels"),
+    (np.zeros((4, 4), np.int32), "dtype"),
+    (np.zeros((4, 4), bool), "dtype"),
+    (np.array([[0.0, np.nan], [1.0, 2.0]]), "NaN"),
+    (np.array([[0.0, np.inf], [1.0, 2.0]], np.float32), "NaN or infinite"),
+])
+def test_bad_images_raise_value_error(image, message):
+    with pytest.raises(ValueError, match=message):
+        extract_segments(image)
+
+
+@pytest.mark.parametrize("changes", [
+    {"detector": "canny"}, {"blur_size": 4}, {"canny_low_ratio": 1.5}, {"merge_gap": -1.0}, {"max_segments": 0},
+])
+def test_bad_params_raise_value_error(changes):
+    with pytest.raises(ValueError):
+        EdgeParams(**changes)
+
+
+def test_max_segments_keeps_the_longest():
+    everything = extract_segments(draw(SCENE, GREYS))
+    five = extract_segments(draw(SCENE, GREYS), EdgeParams(max_segments=5))
+    np.testing.assert_allclose(five, everything[:5])
