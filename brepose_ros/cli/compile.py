@@ -1,0 +1,58 @@
+"""brepose-compile: compile a STEP part's aspect graph into MODEL.brepose.npz (offline).
+
+    brepose-compile MODEL.step [-o MODEL.brepose.npz] [--step-deg D | --lonlat K]
+                    [--workers N] [--smooth] [--method exact|poly]
+
+Prints a one-line summary (views, segments, time, file size); a bad input prints the
+reason on stderr and exits with status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from ..aspect_graph import DEFAULT_STEP_DEG, compile_aspect_graph, default_path
+from ..hidden_lines import DEFAULT_CHORD_TOLERANCE, DEFAULT_METHOD, DEFAULT_MIN_LENGTH, METHODS
+from .common import run
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="brepose-compile", description=__doc__.splitlines()[0])
+    p.add_argument("step", type=Path, help="STEP file of the part (any unit; stored in metres)")
+    p.add_argument("-o", "--output", type=Path, help="output file (default: ./MODEL.brepose.npz)")
+    views = p.add_mutually_exclusive_group()
+    views.add_argument("--step-deg", type=float, default=DEFAULT_STEP_DEG,
+                       help=f"angle between neighbouring views on a golden-spiral sphere (default {DEFAULT_STEP_DEG})")
+    views.add_argument("--lonlat", type=int, metavar="K",
+                       help="the seed paper's longitude/latitude grid of density K instead")
+    p.add_argument("--workers", type=int, help="processes (default: one per CPU)")
+    p.add_argument("--smooth", action="store_true", help="also keep smooth tangent seams (Rg1 lines)")
+    p.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD,
+                   help=f"hidden-line removal on the B-Rep (exact) or its mesh (poly); default {DEFAULT_METHOD}")
+    p.add_argument("--chord-tolerance", type=float, default=DEFAULT_CHORD_TOLERANCE,
+                   help=f"largest 2D error of a line section, fraction of the diameter (default {DEFAULT_CHORD_TOLERANCE})")
+    p.add_argument("--min-length", type=float, default=DEFAULT_MIN_LENGTH,
+                   help=f"shortest kept section, fraction of the diameter (default {DEFAULT_MIN_LENGTH})")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+
+    def compile_and_save() -> None:
+        started = time.perf_counter()
+        graph = compile_aspect_graph(args.step, step_deg=args.step_deg, lonlat=args.lonlat, workers=args.workers,
+                                     include_smooth=args.smooth, chord_tolerance=args.chord_tolerance,
+                                     min_length=args.min_length, method=args.method, progress=not args.quiet)
+        path = graph.save(args.output or default_path(args.step))
+        per_view = graph.n_segments / graph.n_views
+        print(f"{path}: {graph.n_views} views, {graph.n_segments} segments ({per_view:.0f} per view), "
+              f"{time.perf_counter() - started:.1f} s, {path.stat().st_size / 1e6:.1f} MB")
+
+    return run(compile_and_save)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
