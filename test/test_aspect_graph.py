@@ -1,0 +1,303 @@
+"""View sphere, hidden-line removal and the aspect graph file, on parts with known answers."""
+from __future__ import annotations
+
+import json
+import struct
+import zipfile
+
+import cadquery as cq
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from brepose_ros import shapes
+from brepose_ros.aspect_graph import AspectGraph, AspectGraphError, compile_aspect_graph
+from brepose_ros.cad import load_step
+from brepose_ros.geometry import look_at_rotation, normalize
+from brepose_ros.hidden_lines import METHODS, OUTLINE, SHARP, HiddenLineRemover, view_coordinates
+from brepose_ros.metric_space import normalisation_of, tetrads
+from brepose_ros.viewsphere import fibonacci_directions, lonlat_directions, nearest_views
+
+
+# ----------------------------------------------------------------------------- view sphere
+
+@pytest.mark.parametrize("step_deg", [5.0, 30.0])
+def test_golden_spiral_neighbours_are_about_one_step_apart(step_deg):
+    directions = fibonacci_directions(step_deg)
+    assert np.allclose(np.linalg.norm(directions, axis=1), 1.0)
+    distance, _ = cKDTree(directions).query(directions, k=2)
+    spacing = np.degrees(2.0 * np.arcsin(distance[:, 1] / 2.0))
+    assert np.median(spacing) == pytest.approx(step_deg, rel=0.05)
+    assert spacing.min() > 0.8 * step_deg  # no crowding anywhere, poles included
+
+
+def test_lonlat_grid_has_the_papers_layout():
+    directions = lonlat_directions(24)
+    assert len(directions) == 24 * 23 + 2
+    assert np.allclose(directions[[0, -1]], [[0, 0, -1], [0, 0, 1]])
+    latitudes = np.degrees(np.arcsin(directions[1:-1, 2]))
+    assert np.allclose(np.unique(latitudes.round(6)), -90 + 7.5 * np.arange(1, 24))
+
+
+def test_nearest_views_are_sorted_by_angle():
+    directions = fibonacci_directions(10.0)
+    query = normalize(directions[7] + 0.01)
+    nearest = nearest_views(directions, query, k=3)
+    assert nearest[0] == 7
+    angles = np.arccos(np.clip(directions[nearest] @ query, -1, 1))
+    assert np.all(np.diff(angles) >= 0)
+    assert nearest_views(directions, directions[:4], k=3).shape == (4, 3)
+
+
+# ----------------------------------------------------------------------------- hidden lines
+
+def visible(step, direction, method, **options):
+    part = load_step(step)
+    rotation = look_at_rotation(normalize(np.asarray(direction, dtype=float)))
+    return part, rotation, HiddenLineRemover(part, method=method, **options).segments(rotation)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("direction, count", [((0, 0, -1), 4), ((1, 1, 1), 9), ((0.2, 0.3, -1), 9)],
+                         ids=["face-on", "body-diagonal", "oblique"])
+def test_box_shows_its_visible_edges_once(builtin_step, method, direction, count):
+    part, rotation, view = visible(builtin_step("box"), direction, method)
+    assert len(view.kinds) == count and np.all(view.kinds == SHARP)
+    # Every 3D end point is a corner of the box, and projects to its 2D end point.
+    corners = np.array([[x, y, z] for x in (-0.03, 0.03) for y in (-0.02, 0.02) for z in (-0.0125, 0.0125)])
+    distance, _ = cKDTree(corners).query(view.segments_3d.reshape(-1, 3))
+    assert distance.max() < 1e-9
+    xy = view_coordinates(view.segments_3d, rotation, part.center)
+    expected = (view.segments_3d - part.center) @ rotation[:2].T
+    assert np.allclose(xy, expected)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_cylinder_side_on_shows_two_outlines_and_its_two_end_lines(builtin_step, method):
+    part, rotation, view = visible(builtin_step("cylinder"), (1, 0, 0), method)  # r 20, h 50 mm
+    assert sorted(view.kinds.tolist()) == [SHARP, SHARP, OUTLINE, OUTLINE]
+    xy = view_coordinates(view.segments_3d, rotation, part.center)
+    outline = xy[view.kinds == OUTLINE]
+    assert np.allclose(np.sort(np.abs(outline[..., 0]).ravel()), 0.020, atol=2e-4)  # x = +-r
+    ends = xy[view.kinds == SHARP]
+    assert np.allclose(np.abs(ends[..., 1]), 0.025, atol=1e-6)  # the end circles seen edge-on
+    assert np.allclose(np.abs(ends[:, 1, 0] - ends[:, 0, 0]), 0.040, atol=2e-4)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_cylinder_seen_obliquely_shows_an_ellipse_within_the_chord_tolerance(builtin_step, method):
+    part, rotation, view = visible(builtin_step("cylinder"), (1, 0, 0.6), method)
+    ends = view.segments_3d[view.kinds == SHARP]
+    radius = np.linalg.norm(ends[..., :2], axis=2)  # 3D end points lie on the end circles
+    assert np.allclose(radius, 0.020, atol=1e-3 * part.diameter)
+    near_end = ends[np.all(ends[..., 2] < 0, axis=1)]  # seen from below: the whole bottom ellipse
+    xy = view_coordinates(near_end, rotation, part.center).reshape(-1, 2)
+    assert len(near_end) >= 8 and np.ptp(xy[:, 0]) == pytest.approx(0.040, abs=1e-3)
+
+
+@pytest.fixture(scope="module")
+def blind_hole_step(tmp_path_factory):
+    """A 60 x 40 x 20 mm block with a 16 mm hole drilled 10 mm deep from its bottom face."""
+    block = cq.Workplane("XY").box(60, 40, 20).faces("<Z").workplane().hole(16, 10)
+    return shapes.export_step(block, tmp_path_factory.mktemp("blind") / "blind_hole.step")
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_hole_behind_a_face_does_not_appear(blind_hole_step, method):
+    _, _, top = visible(blind_hole_step, (0.2, 0.3, -1), method)  # looking down at the top
+    assert len(top.kinds) == 9
+    on_box_surface = np.isclose(np.abs(top.segments_3d), [0.03, 0.02, 0.01], atol=1e-9).any(axis=2)
+    assert on_box_surface.all()
+    hole_radius = np.linalg.norm(top.segments_3d[..., :2], axis=2)
+    assert (hole_radius > 0.0081).all()
+    _, _, bottom = visible(blind_hole_step, (0.2, 0.3, 1), method)  # looking up: the hole shows
+    assert np.isclose(np.linalg.norm(bottom.segments_3d[..., :2], axis=2), 0.008, atol=2e-4).any()
+
+
+def occt_2d_edges(shape, rotation):
+    """OCCT's own 2D hidden-line result, densely sampled, in our view coordinates."""
+    from OCP.BRepAdaptor import BRepAdaptor_Curve
+    from OCP.HLRBRep import HLRBRep_Algo, HLRBRep_HLRToShape
+    from OCP.TopAbs import TopAbs_EDGE
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS
+
+    from brepose_ros.hidden_lines import _projector
+
+    algo = HLRBRep_Algo()
+    algo.Add(shape)
+    algo.Projector(_projector(rotation))
+    algo.Update()
+    algo.Hide()
+    result = HLRBRep_HLRToShape(algo)
+    points = []
+    for compound in (result.VCompound(), result.OutLineVCompound()):
+        explorer = TopExp_Explorer(compound, TopAbs_EDGE)
+        while explorer.More():
+            curve = BRepAdaptor_Curve(TopoDS.Edge_s(explorer.Current()))
+            for u in np.linspace(curve.FirstParameter(), curve.LastParameter(), 2000):
+                x, y, _ = curve.Value(u).Coord()
+                points.append((x, -y))  # the projector's 2D y axis is -y
+            explorer.Next()
+    return np.array(points)
+
+
+def test_exact_3d_end_points_project_onto_occts_2d_result(builtin_step):
+    part, rotation, view = visible(builtin_step("rounded_bracket"), (0.4, -0.7, 0.6), "exact")
+    reference = cKDTree(occt_2d_edges(part.shape, rotation) - rotation[:2] @ part.center)
+    ends = view_coordinates(view.segments_3d, rotation, part.center).reshape(-1, 2)
+    distance, _ = reference.query(ends)
+    assert distance.max() < 3e-4 * part.diameter  # half the reference's sample spacing
+    middles = view_coordinates(view.segments_3d.mean(axis=1), rotation, part.center)
+    assert reference.query(middles)[0].max() <= 0.005 * part.diameter  # the chord tolerance
+
+
+def test_poly_mode_finds_the_same_lines_as_exact(builtin_step):
+    step, direction = builtin_step("rounded_bracket"), (0.4, -0.7, 0.6)
+    part, rotation, exact = visible(step, direction, "exact", min_length=0.0)
+    _, _, poly = visible(step, direction, "poly", min_length=0.0)
+
+    def samples(view):
+        t = np.linspace(0.0, 1.0, 20)[:, None, None]
+        xy = view_coordinates(view.segments_3d, rotation, part.center)
+        return (xy[:, 0] * (1 - t) + xy[:, 1] * t).reshape(-1, 2)
+
+    for found, reference in ((samples(poly), samples(exact)), (samples(exact), samples(poly))):
+        distance, _ = cKDTree(reference).query(found)
+        assert np.mean(distance < 0.01 * part.diameter) > 0.97
+
+
+# ----------------------------------------------------------------------------- aspect graph
+
+@pytest.fixture(scope="module")
+def graph(sample_step):
+    return compile_aspect_graph(sample_step, step_deg=30.0, workers=1, progress=False)
+
+
+def test_graph_layout_follows_the_view_coordinate_convention(graph):
+    assert graph.n_views == len(fibonacci_directions(30.0)) == len(graph.norm_scales)
+    assert graph.seg_offsets[0] == 0 and graph.seg_offsets[-1] == graph.n_segments
+    assert graph.seg_2d.shape == (graph.n_segments, 2, 2) and graph.seg_3d.dtype == np.float64
+    assert graph.params["units"] == "m" and graph.params["method"] in METHODS
+    for i in range(graph.n_views):
+        view = graph.segments_of(i)
+        rotation = look_at_rotation(graph.view_directions[i], graph.view_ups[i])
+        assert np.allclose(view.rotation, rotation)
+        xy = (view.seg_3d - graph.model_center) @ rotation[:2].T
+        norm = normalisation_of(xy)
+        assert np.allclose(norm.center, graph.norm_centers[i]) and norm.scale == pytest.approx(graph.norm_scales[i])
+        assert np.allclose(view.seg_2d, norm.apply(xy), atol=1e-6)
+        assert np.allclose(view.normalisation.undo(view.seg_2d), xy, atol=1e-6 * graph.model_diameter)
+    assert np.allclose(graph.tetrads, tetrads(graph.seg_2d.astype(float)), atol=1e-6)
+
+
+def test_parallel_compile_gives_the_same_graph(sample_step, graph):
+    parallel = compile_aspect_graph(sample_step, step_deg=30.0, workers=2, progress=False)
+    for name, array in graph.arrays().items():
+        assert np.array_equal(array, getattr(parallel, name)), name
+
+
+def test_save_load_round_trip_is_identical(graph, sample_step, tmp_path):
+    path = graph.save(tmp_path / "sample.brepose.npz")
+    loaded = AspectGraph.load(path, step_path=sample_step)
+    for name, array in graph.arrays().items():
+        assert array.dtype == getattr(loaded, name).dtype and np.array_equal(array, getattr(loaded, name)), name
+    assert (loaded.params, loaded.step_sha256, loaded.n_faces, loaded.model_diameter, loaded.format_version) == \
+        (graph.params, graph.step_sha256, graph.n_faces, graph.model_diameter, graph.format_version)
+    with np.load(path, allow_pickle=False) as npz:  # plain data: no pickled objects inside
+        assert all(npz[name].dtype != object for name in npz.files)
+
+
+def missing(path, tmp_path):
+    return tmp_path / "absent.brepose.npz"
+
+
+def shell_script(path, tmp_path):
+    path.write_text("#!/bin/sh\necho not data\n")
+    return path
+
+
+def cut_in_half(path, tmp_path):
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    return path
+
+
+def flip_byte_in_array(path, tmp_path):
+    """Flip one bit inside seg_3d's stored (uncompressed) bytes."""
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo("seg_3d.npy")
+    data = bytearray(path.read_bytes())
+    name_length, extra_length = struct.unpack("<HH", data[info.header_offset + 26: info.header_offset + 30])
+    data[info.header_offset + 30 + name_length + extra_length + info.file_size - 3] ^= 0x01
+    path.write_bytes(bytes(data))
+    return path
+
+
+def rewritten(**changes):
+    """A damage: rewrite the file (a valid zip again) with entries or metadata fields changed;
+    a change returning None removes the entry."""
+    def damage(path, tmp_path):
+        with np.load(path, allow_pickle=False) as npz:
+            entries = {name: npz[name] for name in npz.files}
+        metadata = json.loads(str(entries["metadata"]))
+        for key, change in changes.items():
+            if key in entries:
+                entries[key] = change(entries[key])
+            else:
+                metadata[key] = change(metadata[key])
+        entries = {name: a for name, a in entries.items() if a is not None}
+        entries["metadata"] = np.array(json.dumps(metadata))
+        with open(path, "wb") as stream:
+            np.savez(stream, **entries)
+        return path
+    return damage
+
+
+@pytest.mark.parametrize("damage, message", [
+    (missing, "does not exist"),
+    (shell_script, "not an aspect graph file"),
+    (cut_in_half, "is truncated"),
+    (flip_byte_in_array, "modified after it was written"),
+    (rewritten(seg_3d=lambda a: a + 1e-6), "content digest mismatch"),
+    (rewritten(params=lambda d: {**d, "chord_tolerance": 0.5}), "content digest mismatch"),
+    (rewritten(format_version=lambda v: v + 1), "newer than this brepose_ros"),
+    (rewritten(tetrads=lambda a: None), "lacks the array"),
+    (rewritten(seg_kind=lambda a: a.astype(np.int64)), "array seg_kind has dtype int64"),
+    (rewritten(norm_scales=lambda a: a[:-1]), "array norm_scales has dtype .* shape"),
+], ids=["missing", "not-npz", "truncated", "flipped-byte", "array-edited", "metadata-edited", "newer-version",
+        "missing-array", "wrong-dtype", "wrong-shape"])
+def test_damaged_files_are_refused_naming_the_cause(graph, tmp_path, damage, message):
+    path = damage(graph.save(tmp_path / "sample.brepose.npz"), tmp_path)
+    with pytest.raises(AspectGraphError, match=message):
+        AspectGraph.load(path)
+
+
+def test_graph_of_another_step_file_is_refused(graph, builtin_step, tmp_path):
+    path = graph.save(tmp_path / "sample.brepose.npz")
+    with pytest.raises(AspectGraphError, match="different STEP file"):
+        AspectGraph.load(path, step_path=builtin_step("box"))
+
+
+def test_cli_compiles_and_reports_errors_with_status_2(sample_step, tmp_path, capsys):
+    from brepose_ros.cli.compile import main
+
+    out = tmp_path / "sample.brepose.npz"
+    assert main([str(sample_step), "-o", str(out), "--lonlat", "4", "--workers", "1", "-q"]) == 0
+    assert "14 views" in capsys.readouterr().out and AspectGraph.load(out).params["lonlat"] == 4
+    assert main([str(tmp_path / "missing.step"), "-q"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- real parts
+
+def test_every_real_part_compiles(shared_data, tmp_path):
+    steps = sorted((shared_data / "step").glob("*.st*p"))
+    assert len(steps) == 9
+    for step in steps:
+        graph = compile_aspect_graph(step, step_deg=36.0, workers=1, progress=False)
+        counts = np.diff(graph.seg_offsets)
+        assert graph.n_views == 29 and counts.min() >= 3, step.name
+        lo, hi = graph.seg_3d.reshape(-1, 3).min(axis=0), graph.seg_3d.reshape(-1, 3).max(axis=0)
+        half = graph.model_diameter / 2
+        assert np.all(np.abs(np.stack([lo, hi]) - graph.model_center) <= half * 1.001), step.name
+        AspectGraph.load(graph.save(tmp_path / f"{step.stem}.brepose.npz"), step_path=step)
