@@ -1,9 +1,30 @@
-"""The online pipeline behind one call: image + intrinsics in, metric 6-DoF pose out."""
+"""Stage 6: the online pipeline behind one call: image + intrinsics in, metric 6-DoF pose out.
+
+    image --image_edges--> segments (pixels) --undistort--> normalised camera coordinates
+      --regions--> candidate regions (whole image, clusters of touching segments)
+      --virtual camera + metric_space--> normalised region edge set per region
+      --pre-filter--> shortlist of views --matching--> (view, rotation, similarity) hypotheses
+      --pose--> first metric pose --refine--> final pose --edge support--> score, found?
+
+The views of one image are spread over worker threads in batches (Kuhn-Munkres and most
+numpy kernels release the GIL; one batch per thread, not one task per view, since each
+solve is ~0.1 ms).
+"""
 from __future__ import annotations
 
+import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from . import matching, pose
+from .aspect_graph import AspectGraph
+from .camera import Camera
+from .image_edges import canny_edges, extract_segments, to_gray
+from .metric_space import outline_normalisation as normalisation_of, segment_lengths
+from .geometry import rotation_between
+from .params import EstimatorParams
 
 
 @dataclass
@@ -30,3 +51,369 @@ class Estimate:
     image_segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     model_segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class Region:
+    """Image segments of one candidate region, seen by the virtual camera centred on it."""
+
+    indices: np.ndarray  # into the image's segments
+    R_align: np.ndarray
+    center: np.ndarray  # normalisation in virtual normalised coordinates
+    scale: float
+    features: matching.SegmentFeatures
+    distance_maps: np.ndarray  # oriented distance maps for the chamfer pre-filter
+
+
+@dataclass
+class Hypothesis:
+    """A view matched to a region: the similarity view (metres) -> virtual image (normalised)."""
+
+    region: Region
+    view: int
+    scale: float
+    phi: float
+    shift: np.ndarray
+    assignment: matching.Assignment
+    coverage: float  # F-measure of the two-way edge coverage after alignment
+
+
+@dataclass
+class Frame:
+    """One image's edges in every form the later stages need."""
+
+    segments_px: np.ndarray
+    segments_n: np.ndarray  # undistorted, normalised camera coordinates
+    camera: Camera
+    evidence: pose.EdgeEvidence
+
+    @property
+    def focal(self) -> float:
+        return (self.camera.fx + self.camera.fy) / 2.0
+
+
+@dataclass
+class Candidate:
+    """A refined pose with its score and the hypothesis it grew from."""
+
+    score: float
+    R: np.ndarray
+    t: np.ndarray
+    hypothesis: Hypothesis
+
+
+#: association tolerances of the refinement rounds, in units of pose.inlier_pixels
+REFINE_SCHEDULE = (8.0, 4.0, 2.0, 1.0, 1.0, 1.0)
+
+
+class ViewLibrary:
+    """Per-view features for matching, computed once from the aspect graph."""
+
+    def __init__(self, graph: AspectGraph, max_segments: int):
+        self.normalisation = []
+        self.features: list[matching.SegmentFeatures] = []
+        for v in range(graph.n_views):
+            lo, hi = graph.seg_offsets[v], graph.seg_offsets[v + 1]
+            metric = graph.seg_2d[lo:hi] * graph.norm_scales[v] + graph.norm_centers[v]
+            metric = metric[matching.longest(metric, max_segments)]
+            norm = normalisation_of(metric)
+            self.normalisation.append(norm)
+            self.features.append(matching.describe(norm.apply(metric)))
+        self.orientation_histograms = np.stack([f.orientation_histogram for f in self.features])
+        self.prefilter = matching.ChamferPrefilter(self.features)
+        self.neighbours = nearest_neighbours(graph.view_directions, NEIGHBOURS)
+
+    def shortlist(self, region: Region, p) -> list[tuple[int, float]]:
+        """The (view, rotation) pairs closest to the region by oriented chamfer distance."""
+        phis = matching.rotation_candidates(self.orientation_histograms,
+                                            region.features.orientation_histogram, p.rotation_candidates)
+        scores = self.prefilter.scores(region.distance_maps, phis).ravel()
+        count = min(p.shortlist_size, len(scores))
+        best = np.argpartition(scores, count - 1)[:count]
+        views, which = np.unravel_index(best, phis.shape)
+        return [(int(v), float(phis[v, r])) for v, r in zip(views, which)]
+
+
+class Estimator:
+    """Finds one part (one aspect graph) in images. Thread-safe for one caller at a time."""
+
+    def __init__(self, graph: AspectGraph, params: EstimatorParams | None = None):
+        self.graph = graph
+        self._params = params or EstimatorParams()
+        self._views = ViewLibrary(graph, self._params.matching.max_model_segments)
+        self._pool = ThreadPoolExecutor(max_workers=max(1, self._params.matching.workers))
+
+    @property
+    def params(self) -> EstimatorParams:
+        return self._params
+
+    @params.setter
+    def params(self, value: EstimatorParams) -> None:
+        """New parameters apply from the next image; view features are rebuilt if needed."""
+        old = self._params
+        self._params = value
+        if value.matching.max_model_segments != old.matching.max_model_segments:
+            self._views = ViewLibrary(self.graph, value.matching.max_model_segments)
+        if value.matching.workers != old.matching.workers:
+            self._pool.shutdown(wait=False)
+            self._pool = ThreadPoolExecutor(max_workers=max(1, value.matching.workers))
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
+
+    # -- the pipeline ------------------------------------------------------------------
+    def estimate(self, image: np.ndarray, camera: Camera) -> Estimate:
+        """Find the part in ``image`` (grey or BGR ndarray) seen by ``camera``.
+
+        Raises ValueError for an unusable image (empty, wrong shape or dtype) or an image
+        whose size disagrees with the camera's.
+        """
+        p = self._params
+        timings: dict[str, float] = {}
+        clock = time.perf_counter()
+        if image.ndim < 2 or image.shape[0] != camera.height or image.shape[1] != camera.width:
+            raise ValueError(f"image of shape {image.shape} does not fit the camera's "
+                             f"{camera.width}x{camera.height}")
+        gray = to_gray(image)
+        segments_px = extract_segments(image, p.edges)
+        clock = _lap(timings, "edges", clock)
+        not_found = Estimate(False, None, None, 0.0, 1.0, -1, len(segments_px), 0, 0, timings=timings)
+        if len(segments_px) < 3:
+            return not_found
+        segments_n = pose.undistort_segments(segments_px, camera)
+        regions = self._regions(segments_px, segments_n, camera)
+        jobs = [(region, view, phi) for region in regions for view, phi in self._views.shortlist(region, p.matching)]
+        clock = _lap(timings, "prefilter", clock)
+        hypotheses = self._match_all(jobs)
+        clock = _lap(timings, "matching", clock)
+        if not hypotheses:
+            return not_found
+        frame = Frame(segments_px, segments_n, camera, pose.EdgeEvidence(canny_edges(gray, p.edges), gray))
+        candidates = sorted((self._verify(h, frame) for h in best_per_region(hypotheses, p.matching.hypotheses)),
+                            key=lambda c: -c.score)
+        best = max((self._climb(c, frame) for c in candidates[: p.pose.climb_candidates]), key=lambda c: c.score)
+        clock = _lap(timings, "refinement", clock)
+        timings["total"] = sum(timings.values())
+        found = best.score >= p.pose.min_score
+        a = best.hypothesis.assignment
+        visible = self.graph.seg_3d[self._visible_segments(best.R, best.t)]
+        matches = pose.associate(visible, best.R, best.t, segments_n, p.pose.inlier_pixels / frame.focal)
+        return Estimate(found, best.R if found else None, best.t if found else None, best.score, a.error_ratio,
+                        int(best.hypothesis.view), len(segments_px), len(a.model_index), int(a.nearest.sum()),
+                        segments_px[matches.image_index],
+                        pose.project_pixels(matches.model_3d, best.R, best.t, camera), timings)
+
+    def _regions(self, segments_px: np.ndarray, segments_n: np.ndarray, camera: Camera) -> list[Region]:
+        """The whole image, then clusters of touching segments (off-centre part among clutter)."""
+        p = self._params.matching
+        groups = [np.arange(len(segments_px))]
+        groups += cluster_segments(segments_px, gap=0.03 * np.hypot(camera.width, camera.height))
+        regions = []
+        for indices in groups[: p.max_regions]:
+            if len(indices) >= 3:
+                regions.append(self._region(indices, segments_n))
+        return [r for r in regions if r is not None]
+
+    def _region(self, indices: np.ndarray, segments_n: np.ndarray) -> Region | None:
+        p = self._params.matching
+        indices = indices[matching.longest(segments_n[indices], p.max_image_segments)]
+        try:
+            center = normalisation_of(segments_n[indices]).center
+            R_align = pose.virtual_alignment(center)
+            virtual = pose.to_virtual(segments_n[indices], R_align)
+            norm = normalisation_of(virtual)
+        except ValueError:
+            return None
+        features = matching.describe(norm.apply(virtual))
+        return Region(indices, R_align, norm.center, norm.scale, features,
+                      self._views.prefilter.distance_maps(features))
+
+    def _match_all(self, jobs: list[tuple[Region, int, float]]) -> list[Hypothesis]:
+        workers = max(1, self._params.matching.workers)
+        batches = [jobs[i::workers] for i in range(workers)]
+        results = self._pool.map(self._match_batch, batches)
+        return [h for batch in results for h in batch if h is not None]
+
+    def _match_batch(self, jobs: list[tuple[Region, int, float]]) -> list[Hypothesis | None]:
+        return [self._match_view(region, view, phi) for region, view, phi in jobs]
+
+    def _match_view(self, region: Region, view: int, phi: float) -> Hypothesis | None:
+        """Kuhn-Munkres at the shortlisted rotation, the similarity its nearest pairs imply,
+        then that similarity polished by 2D ICP against the region's lines."""
+        p = self._params.matching
+        model = self._views.features[view]
+        best = matching.assign(model, region.features, phi, p)
+        similarity = matching.similarity_from_pairs(model, region.features, best, phi)
+        if similarity is None:
+            return None
+        moved = _apply_similarity(model.segments, *similarity)
+        # re-match with the similarity applied: the pairs now say what is really aligned
+        refined = matching.assign(matching.describe(moved), region.features, 0.0, p)
+        if refined.cost < best.cost:
+            better = matching.similarity_from_pairs(model, region.features, refined, similarity[1])
+            if better is not None:
+                best, similarity = refined, better
+                moved = _apply_similarity(model.segments, *similarity)
+        tolerance = p.coverage_tolerance
+        moved, polish = matching.align_to_lines(moved, region.features.segments,
+                                                (4 * tolerance, 2 * tolerance, tolerance))
+        a, angle, b = similarity
+        c, s = np.cos(angle), np.sin(angle)
+        A = polish[:, :2] @ (a * np.array([[c, -s], [s, c]]))
+        b = polish[:, :2] @ b + polish[:, 2]
+        a, angle = float(np.sqrt(abs(np.linalg.det(A)))), float(np.arctan2(A[1, 0], A[0, 0]))
+        covered_model = matching.coverage(moved, region.features.segments, tolerance)
+        covered_image = matching.coverage(region.features.segments, moved, tolerance)
+        f_measure = 2 * covered_model * covered_image / max(covered_model + covered_image, 1e-12)
+        # compose: view metres -> view normalised -> region normalised -> virtual image
+        norm_v = self._views.normalisation[view]
+        scale = region.scale * a / norm_v.scale
+        rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        shift = region.center + region.scale * b - scale * rot @ norm_v.center
+        return Hypothesis(region, view, scale, angle, shift, best, f_measure)
+
+    def _verify(self, hyp: Hypothesis, frame: "Frame") -> "Candidate":
+        """The first pose of a hypothesis, refined against the image lines, and its score."""
+        g = self.graph
+        R, t = pose.pose_from_similarity(g.view_rotations[hyp.view], g.model_center, hyp.scale,
+                                         hyp.phi, hyp.shift, hyp.region.R_align)
+        R, t = self._refine(R, t, frame, REFINE_SCHEDULE[: self._params.pose.refine_iterations])
+        return Candidate(self._score(R, t, frame), R, t, hyp)
+
+    def _climb(self, start: "Candidate", frame: "Frame") -> "Candidate":
+        """Hill-climb the score over neighbouring views of the aspect graph.
+
+        A hypothesis from a view 10-30 degrees off refines into a nearby local optimum.
+        Each step turns the pose so that the camera sees the part along one of the
+        current view's graph neighbours (keeping the part's centre where it is), refines
+        that briefly, and moves to the best-scoring neighbour while the score improves.
+        """
+        g, best = self.graph, start
+        for _ in range(self._params.pose.view_search_steps):
+            here = self._nearest_view(best.R, best.t)
+            center = best.R @ g.model_center + best.t
+            improved = best
+            for neighbour in self._views.neighbours[here]:
+                turn = rotation_between(g.view_directions[neighbour], g.view_directions[here])
+                R = best.R @ turn
+                R, t = self._refine(R, center - R @ g.model_center, frame, REFINE_SCHEDULE[1:3])
+                score = self._score(R, t, frame)
+                if score > improved.score:
+                    improved = Candidate(score, R, t, best.hypothesis)
+            if improved is best:
+                break
+            best = improved
+        R, t = self._refine(best.R, best.t, frame, REFINE_SCHEDULE[3:4])
+        score = self._score(R, t, frame)
+        return Candidate(score, R, t, best.hypothesis) if score >= best.score else best
+
+    def _refine(self, R, t, frame: "Frame", schedule) -> tuple[np.ndarray, np.ndarray]:
+        """Re-associate the visible model edges with image lines and refine, round by round."""
+        g, tolerance = self.graph, self._params.pose.inlier_pixels / frame.focal
+        for factor in schedule:
+            if t[2] <= 0:
+                break
+            model_3d = g.seg_3d[self._visible_segments(R, t)]
+            matches = pose.associate(model_3d, R, t, frame.segments_n, factor * tolerance)
+            R, t = pose.refine_pose(R, t, matches, tolerance)
+        return R, t
+
+    def _score(self, R, t, frame: "Frame") -> float:
+        """F-measure of two shares on the image's edge pixels (``pose.EdgeEvidence``).
+
+        Of the projected visible model edges, the share an image edge confirms; of the
+        image edges inside the projected part's outline, the share a model edge explains.
+        Either alone is fooled: a pose far away projects small onto dense edges, a pose too
+        close covers every edge in the image; and a pose projecting smaller than
+        ``pose.min_size_pixels`` scores 0. Neither share depends on the region a
+        hypothesis came from, so hypotheses of all regions compare.
+        """
+        if t[2] <= 0:
+            return 0.0
+        model_px = pose.project_pixels(self.graph.seg_3d[self._visible_segments(R, t)], R, t, frame.camera)
+        extent = np.ptp(model_px.reshape(-1, 2), axis=0) if len(model_px) else np.zeros(2)
+        if np.hypot(*extent) < self._params.pose.min_size_pixels:
+            return 0.0  # a part this small is not recognisable, and a tiny pose fits any edges
+        tolerance = self._params.pose.inlier_pixels
+        confirmed = frame.evidence.support(model_px, tolerance)
+        explained = frame.evidence.explained(model_px, tolerance)
+        return 2 * confirmed * explained / max(confirmed + explained, 1e-12)
+
+    def _nearest_view(self, R: np.ndarray, t: np.ndarray) -> int:
+        """The graph view nearest to the direction the camera sees the part from."""
+        g = self.graph
+        direction = g.model_center + R.T @ t  # model centre minus camera centre (-R^T t)
+        return int(np.argmax(g.view_directions @ (direction / np.linalg.norm(direction))))
+
+    def _visible_segments(self, R: np.ndarray, t: np.ndarray) -> slice:
+        """Segments visible from the graph view nearest to the pose's viewing direction."""
+        view = self._nearest_view(R, t)
+        return slice(self.graph.seg_offsets[view], self.graph.seg_offsets[view + 1])
+
+
+#: graph neighbours tried per step of the view search
+NEIGHBOURS = 8
+
+
+def nearest_neighbours(directions: np.ndarray, k: int) -> np.ndarray:
+    """(V, k) indices of each direction's k nearest other directions (chunked: V can be 10^4)."""
+    out = np.empty((len(directions), min(k, len(directions) - 1)), dtype=np.int64)
+    for lo in range(0, len(directions), 1024):
+        cos = directions[lo:lo + 1024] @ directions.T
+        cos[np.arange(len(cos)), np.arange(lo, lo + len(cos))] = -np.inf
+        part = np.argpartition(-cos, out.shape[1] - 1, axis=1)[:, : out.shape[1]]
+        order = np.argsort(-np.take_along_axis(cos, part, axis=1), axis=1)
+        out[lo:lo + 1024] = np.take_along_axis(part, order, axis=1)
+    return out
+
+
+def best_per_region(hypotheses: list[Hypothesis], count: int) -> list[Hypothesis]:
+    """The ``count`` best-covered hypotheses of every region: a small region (the part
+    among clutter) must not lose its candidates to the whole image's."""
+    chosen = []
+    for region_id in {id(h.region) for h in hypotheses}:
+        own = [h for h in hypotheses if id(h.region) == region_id]
+        chosen += sorted(own, key=lambda h: -h.coverage)[:count]
+    return chosen
+
+
+def cluster_segments(segments_px: np.ndarray, gap: float) -> list[np.ndarray]:
+    """Groups of segments chained by end points closer than ``gap``, largest first.
+
+    Only groups with at least a tenth of the largest group's total length are returned:
+    these are the candidate positions of an off-centre part among clutter.
+    """
+    n = len(segments_px)
+    ends = segments_px.reshape(-1, 2)
+    close = np.linalg.norm(ends[:, None] - ends[None, :], axis=2) < gap
+    linked = close.reshape(n, 2, n, 2).any(axis=(1, 3))
+    parent = np.arange(n)
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in zip(*np.nonzero(np.triu(linked, 1))):
+        ri, rj = root(i), root(j)
+        if ri != rj:
+            parent[ri] = rj
+    labels = np.array([root(i) for i in range(n)])
+    lengths = segment_lengths(segments_px)
+    groups = [np.nonzero(labels == lab)[0] for lab in np.unique(labels)]
+    totals = np.array([lengths[g].sum() for g in groups])
+    order = np.argsort(-totals)
+    keep = [groups[i] for i in order if totals[i] >= 0.1 * totals[order[0]]]
+    return keep if len(keep) > 1 else []  # one cluster is the whole image again
+
+
+def _apply_similarity(segments: np.ndarray, scale: float, angle: float, shift: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return scale * segments @ np.array([[c, s], [-s, c]]) + shift
+
+
+def _lap(timings: dict, name: str, start: float) -> float:
+    now = time.perf_counter()
+    timings[name] = now - start
+    return now
