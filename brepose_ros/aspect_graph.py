@@ -13,8 +13,9 @@ model point X are ``xy = (R_view @ (X - model_center))[:2]``; per view
 Segments are stored flat (CSR): the sections of view i are rows
 ``seg_offsets[i]:seg_offsets[i + 1]`` of seg_2d, seg_3d, seg_kind and tetrads.
 
-The file (MODEL.brepose.npz) is data, never code: an uncompressed npz read with
-``allow_pickle=False``, plus a JSON metadata entry with the format version, the sha256 of
+The file (MODEL.brepose.npz) is data, never code: a deflated npz read with
+``allow_pickle=False`` (deflate halves it: seg_3d repeats the same vertices view after
+view), plus a JSON metadata entry with the format version, the sha256 of
 the source STEP, the compile parameters, the units and the array shapes, and a sha256 over
 the metadata and the array bytes so that any change after writing is detected.
 """
@@ -25,6 +26,7 @@ import json
 import os
 import tempfile
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -146,7 +148,7 @@ class AspectGraph:
             raise AspectGraphError(f"cannot write {path}: {error}") from error
         try:
             with os.fdopen(handle, "wb") as stream:
-                np.savez(stream, **entries)
+                np.savez_compressed(stream, **entries)
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
@@ -217,9 +219,9 @@ def _read(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
             arrays = {name: npz[name] for name in _ARRAYS}
     except AspectGraphError:
         raise
-    except zipfile.BadZipFile as error:
-        raise AspectGraphError(f"{path} fails its zip checksum ({error}): the file was modified after it "
-                               f"was written (tampered with or corrupted); recompile it") from error
+    except (zipfile.BadZipFile, zlib.error) as error:
+        raise AspectGraphError(f"{path} fails its zip integrity check ({error}): the file was modified "
+                               f"after it was written (tampered with or corrupted); recompile it") from error
     except Exception as error:  # zipfile, zlib and numpy report damage in different ways
         raise AspectGraphError(f"{path} is truncated or corrupt ({type(error).__name__}: {error})") from error
     try:

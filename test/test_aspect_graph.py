@@ -223,12 +223,12 @@ def cut_in_half(path, tmp_path):
 
 
 def flip_byte_in_array(path, tmp_path):
-    """Flip one bit inside seg_3d's stored (uncompressed) bytes."""
+    """Flip one bit inside seg_3d's stored (deflated) bytes."""
     with zipfile.ZipFile(path) as archive:
         info = archive.getinfo("seg_3d.npy")
     data = bytearray(path.read_bytes())
     name_length, extra_length = struct.unpack("<HH", data[info.header_offset + 26: info.header_offset + 30])
-    data[info.header_offset + 30 + name_length + extra_length + info.file_size - 3] ^= 0x01
+    data[info.header_offset + 30 + name_length + extra_length + info.compress_size // 2] ^= 0x01
     path.write_bytes(bytes(data))
     return path
 
