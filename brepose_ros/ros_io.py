@@ -1,0 +1,309 @@
+"""ROS message helpers shared by the node, the launch-free scripts, the benchmark and tests.
+
+Conversions (Image, CameraInfo, PoseStamped, DiagnosticStatus <-> numpy and the package's
+types) live here so that no script re-implements them; the pixel formats themselves are
+``image_codec``'s business. :class:`InProcessRos` runs nodes in one process,
+:class:`Player` and :class:`PoseRecorder` are the two halves of a replay: feed frames into
+the node's topics, collect what the node answers.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Iterator
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
+
+from .bags import read_bag
+from .camera import Camera
+from .geometry import matrix_from_quaternion, quaternion_from_matrix
+from .image_codec import decode_image, encode_image
+
+#: the node's input QoS: sensor data (best effort, volatile) with depth 1, so the DDS reader
+#: itself keeps only the newest frame; best effort also matches reliable publishers
+LATEST_ONLY = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                         reliability=ReliabilityPolicy.BEST_EFFORT)
+#: what cameras (and our players) publish with
+SENSOR_QOS = qos_profile_sensor_data
+DIAGNOSTICS_TOPIC = "/diagnostics"
+LEVEL_NAMES = {DiagnosticStatus.OK: "OK", DiagnosticStatus.WARN: "WARN",
+               DiagnosticStatus.ERROR: "ERROR", DiagnosticStatus.STALE: "STALE"}
+
+
+def stamp_ns(stamp: Time) -> int:
+    """A header stamp as one integer: the key that ties a pose and diagnostics to their image."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def stamp_from_ns(ns: int) -> Time:
+    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+def image_from_msg(msg: Image) -> np.ndarray:
+    """Pixels of an Image message; ValueError (from image_codec) names what is wrong."""
+    return decode_image(msg.encoding, msg.height, msg.width, msg.step, msg.data, bool(msg.is_bigendian))
+
+
+def image_msg(image: np.ndarray, header: Header) -> Image:
+    encoding, step, data = encode_image(image)
+    return Image(header=header, height=image.shape[0], width=image.shape[1],
+                 encoding=encoding, is_bigendian=0, step=step, data=data)
+
+
+def camera_info_msg(camera: Camera, header: Header) -> CameraInfo:
+    msg = CameraInfo(header=header, width=camera.width, height=camera.height)
+    msg.distortion_model = "plumb_bob"
+    msg.d = [float(d) for d in camera.dist_coeffs]
+    msg.k = [float(v) for v in camera.K.ravel()]
+    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    msg.p = [camera.fx, 0.0, camera.cx, 0.0, 0.0, camera.fy, camera.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    return msg
+
+
+def pose_msg(R: np.ndarray, t: np.ndarray, header: Header) -> PoseStamped:
+    """T_cam_model as a PoseStamped in the image's frame (CONVENTIONS.md: position = t)."""
+    msg = PoseStamped(header=header)
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in t)
+    q = quaternion_from_matrix(R)
+    o = msg.pose.orientation
+    o.x, o.y, o.z, o.w = (float(v) for v in q)
+    return msg
+
+
+def pose_from_msg(msg: PoseStamped) -> tuple[np.ndarray, np.ndarray]:
+    p, o = msg.pose.position, msg.pose.orientation
+    return matrix_from_quaternion(np.array([o.x, o.y, o.z, o.w])), np.array([p.x, p.y, p.z])
+
+
+def diagnostic_status(name: str, level: bytes, message: str, hardware_id: str, values: dict) -> DiagnosticStatus:
+    """A DiagnosticStatus; numbers are written with 6 significant digits."""
+    def text(v) -> str:
+        return f"{v:.6g}" if isinstance(v, float) else str(v)
+    return DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id,
+                            values=[KeyValue(key=k, value=text(v)) for k, v in values.items()])
+
+
+def status_values(status: DiagnosticStatus) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+def bag_frames(bag: str | Path, topic: str | None = None, info_topic: str | None = None) -> Iterator[tuple]:
+    """``(stamp_ns, Image, CameraInfo or None)`` messages of a bag for :class:`Player`, with the
+    recorded headers; images are re-encoded from ``bags.read_bag``'s arrays (mono8, mono16
+    and bgr8 stay as they were, other colour encodings arrive as bgr8)."""
+    for frame in read_bag(bag, topic, info_topic):
+        header = Header(stamp=stamp_from_ns(frame.stamp_ns), frame_id=frame.frame_id)
+        info = camera_info_msg(frame.camera, header) if frame.camera is not None else None
+        yield frame.stamp_ns, image_msg(frame.image, header), info
+
+
+class _StartedPool(ThreadPoolExecutor):
+    """A thread pool whose ``submit`` returns once the task has started running."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        started = threading.Event()
+
+        def run():
+            started.set()
+            return fn(*args, **kwargs)
+
+        future = super().submit(run)
+        started.wait()
+        return future
+
+
+def make_executor(threads: int, context: Context | None = None) -> MultiThreadedExecutor:
+    """A MultiThreadedExecutor that does not spin while a callback waits for a pool thread.
+
+    rclpy 9.1 (the kilted wheels) yields a submitted task again as long as no pool thread has
+    started it, without blocking in between (ros2/rclpy#1452, fixed upstream by #1547): the
+    spinning thread then holds the GIL and starves the pool and the estimator. Handing tasks
+    to a pool whose ``submit`` waits for the start closes that window (bench/node_latency.py
+    measures both).
+    """
+    executor = MultiThreadedExecutor(num_threads=threads, context=context)
+    executor._executor.shutdown(wait=False)
+    executor._executor = _StartedPool(threads)
+    return executor
+
+
+class InProcessRos:
+    """A private rclpy context whose executor spins in a daemon thread, for tests, the demo
+    and the benchmark. ``close`` tears down in the order that keeps the process from aborting
+    at exit: executor, nodes, context, thread (../shared/ROS2_ON_PIP.md)."""
+
+    def __init__(self, threads: int = 2, executor_factory: Callable = make_executor):
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.executor = executor_factory(threads, context=self.context)
+        self.nodes: list[Node] = []
+        self._thread = threading.Thread(target=self.executor.spin, name="ros-executor", daemon=True)
+        self._thread.start()
+
+    def add(self, node: Node) -> Node:
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def node(self, name: str) -> Node:
+        return self.add(Node(name, context=self.context))
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        for node in reversed(self.nodes):
+            node.destroy_node()
+        rclpy.shutdown(context=self.context)
+        self._thread.join(timeout=10.0)
+
+    def __enter__(self) -> "InProcessRos":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def wait_until(predicate: Callable, timeout: float, what: str):
+    """The first truthy value of ``predicate()``, polled every 5 ms; TimeoutError naming ``what``."""
+    deadline = time.monotonic() + timeout
+    while not (result := predicate()):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.005)
+    return result
+
+
+class DiagnosticsListener:
+    """Every diagnostics array and its arrival time by image stamp; a caller can wait for one."""
+
+    def __init__(self, node: Node, topic: str = DIAGNOSTICS_TOPIC):
+        self._cond = threading.Condition()
+        self.by_stamp: dict[int, DiagnosticArray] = {}
+        self.arrived: dict[int, float] = {}
+        self.subscription = node.create_subscription(DiagnosticArray, topic, self._on_message, 50)
+
+    def _on_message(self, msg: DiagnosticArray) -> None:
+        with self._cond:
+            stamp = stamp_ns(msg.header.stamp)
+            self.by_stamp[stamp] = msg
+            self.arrived[stamp] = time.perf_counter()
+            self._cond.notify_all()
+
+    def wait_for(self, stamp: int, timeout: float) -> DiagnosticArray | None:
+        with self._cond:
+            self._cond.wait_for(lambda: stamp in self.by_stamp, timeout)
+            return self.by_stamp.get(stamp)
+
+
+@dataclass
+class Playback:
+    """What a replay sent and when, and which images the node answered (diagnostics)."""
+
+    published_at: dict[int, float] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def answered(self, diagnostics: DiagnosticsListener) -> list[int]:
+        return [s for s in self.published_at if s in diagnostics.by_stamp]
+
+    def latencies_ms(self, diagnostics: DiagnosticsListener) -> list[float]:
+        """Publish-to-diagnostics time of every answered image."""
+        return [1000.0 * (diagnostics.arrived[s] - t) for s, t in self.published_at.items() if s in diagnostics.arrived]
+
+
+class Player:
+    """Publishes Image + CameraInfo frames into the node's input topics.
+
+    A frame is ``(stamp_ns, Image, CameraInfo or None)``, messages or their serialized CDR
+    bytes (see :func:`bag_frames`).
+    ``lockstep`` waits after each image for the node's diagnostics of that image (same header
+    stamp), so replay runs exactly as fast as the node keeps up and no frame is lost;
+    ``rate`` keeps the recorded spacing of the stamps divided by ``speed``, like
+    ``ros2 bag play``, and the node drops what it cannot keep up with, as it would live.
+    """
+
+    def __init__(self, node: Node, image_topic: str = "image_raw", info_topic: str = "camera_info",
+                 diagnostics: DiagnosticsListener | None = None):
+        self.image_pub = node.create_publisher(Image, image_topic, SENSOR_QOS)
+        self.info_pub = node.create_publisher(CameraInfo, info_topic, SENSOR_QOS)
+        self.diagnostics = diagnostics or DiagnosticsListener(node)
+
+    def wait_for_node(self, timeout: float = 10.0) -> None:
+        """Wait until the node subscribes to the images and we to its diagnostics."""
+        wait_until(lambda: self.image_pub.get_subscription_count() > 0
+                   and self.diagnostics.subscription.get_publisher_count() > 0,
+                   timeout, f"a node subscribed to {self.image_pub.topic_name} and publishing diagnostics")
+
+    def play(self, frames: Iterable, mode: str = "lockstep", speed: float = 1.0,
+             timeout: float = 10.0) -> Playback:
+        """Replay ``frames`` in order; in lock-step an image not answered within ``timeout``
+        is left behind (it shows as unanswered in the result)."""
+        if mode not in ("lockstep", "rate"):
+            raise ValueError(f"mode must be 'lockstep' or 'rate', got {mode!r}")
+        playback = Playback()
+        start = time.perf_counter()
+        first = None
+        for stamp, image, info in frames:
+            if mode == "rate":
+                first = stamp if first is None else first
+                delay = start + (stamp - first) / 1e9 / speed - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)
+            if info is not None:
+                self.info_pub.publish(info)
+            playback.published_at[stamp] = time.perf_counter()
+            self.image_pub.publish(image)
+            if mode == "lockstep":
+                self.diagnostics.wait_for(stamp, timeout)
+        playback.seconds = time.perf_counter() - start
+        return playback
+
+
+class PoseRecorder:
+    """Collects one part's answers as CONVENTIONS.md predictions.
+
+    The pose comes from the PoseStamped, score and error ratio from the part's diagnostics
+    status of the same image (same header stamp). Images answered with ERROR (unusable input)
+    are left out; images where the part was not found get ``R``/``t`` null.
+    """
+
+    def __init__(self, node: Node, pose_topic: str, status_name: str,
+                 diagnostics: DiagnosticsListener | None = None):
+        self.status_name = status_name
+        self.poses: dict[int, PoseStamped] = {}
+        self.diagnostics = diagnostics or DiagnosticsListener(node)
+        self.subscription = node.create_subscription(PoseStamped, pose_topic, self._on_pose, 50)
+
+    def _on_pose(self, msg: PoseStamped) -> None:
+        self.poses[stamp_ns(msg.header.stamp)] = msg
+
+    def values(self, stamp: int) -> dict[str, str]:
+        array = self.diagnostics.by_stamp.get(stamp)
+        status = next((s for s in array.status if s.name == self.status_name), None) if array else None
+        return status_values(status) if status else {}
+
+    def predictions(self, names: dict[int, str] | None = None) -> list[dict]:
+        """One entry per answered image in stamp order; ``names`` maps stamps to image paths."""
+        out = []
+        for stamp in sorted(self.diagnostics.by_stamp):
+            values = self.values(stamp)
+            if "score" not in values:
+                continue
+            entry = {"image": (names or {}).get(stamp, f"stamp:{stamp}"), "R": None, "t": None,
+                     "score": float(values["score"]), "error_ratio": float(values["error_ratio"])}
+            if values["found"] == "True":
+                R, t = pose_from_msg(wait_until(lambda: self.poses.get(stamp), 5.0, f"the pose of image {stamp}"))
+                entry["R"], entry["t"] = R.ravel().tolist(), t.tolist()
+            out.append(entry)
+        return out

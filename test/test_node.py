@@ -1,0 +1,234 @@
+"""The ROS node in-process: topics, diagnostics levels, bad input, parameters, start-up errors."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticStatus
+from rcl_interfaces.msg import ParameterType
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Image
+
+from brepose_ros.camera import Camera
+from brepose_ros.estimator import Estimate
+from brepose_ros.geometry import matrix_from_quaternion
+from brepose_ros.node import StartupError, check_params_file, main
+from brepose_ros.params import EstimatorParams
+from brepose_ros.ros_io import pose_from_msg, status_values
+from node_helpers import FRAME, Harness
+
+CONFIG = Path(__file__).resolve().parents[1] / "config"
+CAMERA = Camera(200.0, 200.0, 79.5, 59.5, 160, 120)
+R_FAKE = matrix_from_quaternion(np.array([0.1, -0.2, 0.3, 0.9]))
+T_FAKE = np.array([0.01, -0.02, 0.4])
+
+
+class FakeEstimator:
+    """Finds "the part" in any image with a bright pixel; records the parameters it ran with."""
+
+    def __init__(self, graph, params, delay: float = 0.0, fail: bool = False):
+        self.graph, self.params, self.delay, self.fail = graph, params, delay, fail
+        self.calls: list[tuple[tuple, Camera, object]] = []
+
+    def estimate(self, image: np.ndarray, camera: Camera) -> Estimate:
+        self.calls.append((image.shape, camera, self.params))
+        time.sleep(self.delay)
+        if self.fail:
+            raise RuntimeError("boom")
+        found = bool(image.max() > 0)
+        return Estimate(found, R_FAKE if found else None, T_FAKE if found else None,
+                        score=0.9 if found else 0.1, error_ratio=0.2, view_index=3,
+                        n_image_segments=12, n_matched=8, n_nearest=6, timings={"edges": 0.001})
+
+    def close(self) -> None:
+        pass
+
+
+def fake_loader(path: str):
+    if not path.endswith(".brepose.npz"):
+        raise ValueError(f"{path} is not an aspect graph file")
+    return path
+
+
+@pytest.fixture
+def ros():
+    harness = Harness()
+    yield harness
+    harness.close()
+
+
+def start(ros: Harness, factory=FakeEstimator, **parameters):
+    """The node with fake graphs and estimators; ``graphs=None`` leaves the parameter unset."""
+    parameters = {"graphs": ["bracket.brepose.npz"], **parameters}
+    parameters = {name: value for name, value in parameters.items() if value is not None}
+    return ros.start_node(parameters, estimator_factory=factory, graph_loader=fake_loader)
+
+
+def part_image(encoding_shape=(120, 160, 3), dtype=np.uint8) -> np.ndarray:
+    image = np.zeros(encoding_shape, dtype=dtype)
+    image[40:80, 50:110] = np.iinfo(dtype).max // 2
+    return image
+
+
+def test_pose_and_diagnostics_carry_the_image_stamp(ros):
+    node = start(ros)
+    stamp = ros.publish(part_image(), CAMERA)
+    pose = ros.pose(stamp)
+    assert pose.header.frame_id == FRAME
+    R, t = pose_from_msg(pose)
+    np.testing.assert_allclose(R, R_FAKE, atol=1e-9)
+    np.testing.assert_allclose(t, T_FAKE)
+    [status] = ros.answer(stamp)
+    assert status.level == DiagnosticStatus.OK and status.name == "estimator: bracket"
+    assert status.hardware_id == FRAME
+    values = status_values(status)
+    assert float(values["error_ratio"]) == pytest.approx(0.2)
+    for key in ("score", "view_index", "image_edges", "matched_pairs", "latency_ms", "estimator_ms", "edges_ms"):
+        assert key in values
+    assert node.parts[0].estimator.calls[0][1] == CAMERA
+
+
+@pytest.mark.parametrize("shape, dtype", [((120, 160), np.uint8), ((120, 160), np.uint16), ((120, 160, 4), np.uint8)])
+def test_other_pixel_formats_are_accepted(ros, shape, dtype):
+    start(ros)
+    stamp = ros.publish(part_image(shape, dtype), CAMERA)
+    assert ros.answer(stamp)[0].level == DiagnosticStatus.OK
+
+
+def test_image_without_the_part_gives_warn_and_no_pose(ros):
+    start(ros)
+    stamp = ros.publish(np.zeros((120, 160), np.uint8), CAMERA)
+    [status] = ros.answer(stamp)
+    assert status.level == DiagnosticStatus.WARN and "not found" in status.message
+    assert status_values(status)["found"] == "False"
+    time.sleep(0.2)
+    assert stamp not in ros.poses
+
+
+def raw_image(encoding: str, height: int, width: int, step: int, size: int) -> Image:
+    return Image(encoding=encoding, height=height, width=width, step=step, data=bytes(size))
+
+
+@pytest.mark.parametrize("bad", [
+    raw_image("yuv422_yuy2", 120, 160, 320, 320 * 120),
+    raw_image("bgr8", 120, 160, 400, 400 * 120),   # wrong step
+    raw_image("mono8", 120, 160, 160, 100),         # data too short
+    raw_image("mono8", 0, 0, 0, 0),                 # empty
+], ids=["encoding", "step", "size", "empty"])
+def test_bad_image_gives_error_and_the_node_goes_on(ros, bad):
+    start(ros)
+    [status] = ros.answer(ros.publish(bad, CAMERA))
+    assert status.level == DiagnosticStatus.ERROR and status.message.startswith("bad image")
+    good = ros.publish(part_image(), CAMERA)
+    ros.pose(good)
+
+
+def test_missing_camera_info_is_an_error_until_fallback_intrinsics_are_set(ros):
+    node = start(ros)
+    [status] = ros.answer(ros.publish(part_image()))
+    assert status.level == DiagnosticStatus.ERROR and "no CameraInfo" in status.message
+    assert "/camera_info" in status.message
+    node.set_parameters([Parameter("fx", value=210.0), Parameter("fy", value=210.0),
+                         Parameter("cx", value=80.0), Parameter("cy", value=60.0)])
+    ros.pose(ros.publish(part_image()))
+    assert node.parts[0].estimator.calls[-1][1] == Camera(210.0, 210.0, 80.0, 60.0, 160, 120)
+
+
+def test_camera_info_of_another_size_is_an_error(ros):
+    start(ros)
+    [status] = ros.answer(ros.publish(part_image((60, 80, 3)), CAMERA))
+    assert status.level == DiagnosticStatus.ERROR and "160x120" in status.message
+
+
+def test_estimator_exception_is_an_error_not_a_crash(ros):
+    node = start(ros, factory=lambda graph, params: FakeEstimator(graph, params, fail=True))
+    [status] = ros.answer(ros.publish(part_image(), CAMERA))
+    assert status.level == DiagnosticStatus.ERROR and "boom" in status.message
+    node.parts[0].estimator.fail = False
+    ros.pose(ros.publish(part_image(), CAMERA))
+
+
+def test_parameters_change_at_run_time_and_bad_values_are_refused(ros):
+    node = start(ros)
+    assert ros.answer(ros.publish(part_image(), CAMERA))[0].level == DiagnosticStatus.OK
+    result = node.set_parameters([Parameter("pose.warn_error_ratio", value=0.1)])[0]
+    assert result.successful
+    [status] = ros.answer(ros.publish(part_image(), CAMERA))
+    assert status.level == DiagnosticStatus.WARN and "error ratio 0.20 > pose.warn_error_ratio 0.1" in status.message
+    assert node.parts[0].estimator.params.pose.warn_error_ratio == 0.1
+
+    refused = node.set_parameters([Parameter("edges.blur_size", value=4)])[0]
+    assert not refused.successful and "blur_size" in refused.reason
+    assert not node.set_parameters([Parameter("fx", value=-1.0)])[0].successful
+    assert not node.set_parameters([Parameter("graphs", value=["other.brepose.npz"])])[0].successful
+    assert node.get_parameter("edges.blur_size").value == 5
+
+
+def test_every_parameter_is_documented(ros):
+    node = start(ros)
+    descriptors = node.describe_parameters([n for n in node._parameters if n != "use_sim_time"])
+    assert len(descriptors) > 40
+    assert all(d.description for d in descriptors)
+    assert node.describe_parameters(["matching.workers"])[0].type == ParameterType.PARAMETER_INTEGER
+
+
+def test_several_parts_get_their_own_topics_and_statuses(ros):
+    node = start(ros, graphs=["a.brepose.npz", "b.brepose.npz"], part_names=["left", "right"])
+    assert [p.pose_pub.topic_name for p in node.parts] == ["/estimator/left/pose", "/estimator/right/pose"]
+    stamp = ros.publish(part_image(), CAMERA)
+    assert [s.name for s in ros.answer(stamp)] == ["estimator: left", "estimator: right"]
+    ros.pose(stamp)
+
+
+def test_only_the_newest_frame_is_processed(ros):
+    node = start(ros, factory=lambda graph, params: FakeEstimator(graph, params, delay=0.3))
+    stamps = []
+    for _ in range(6):
+        stamps.append(ros.publish(part_image(), CAMERA))
+        time.sleep(0.03)
+    [status] = ros.answer(stamps[-1])
+    processed = len(node.parts[0].estimator.calls)
+    assert processed <= 3, "frames queued up behind the slow estimator"
+    assert len(ros.diagnostics.by_stamp) == processed
+    assert "frames_skipped" in status_values(status)
+
+
+@pytest.mark.parametrize("parameters, message", [
+    ({"graphs": None}, "'graphs' is empty"),
+    ({"graphs": ["bracket.step"], "part_names": ["bracket"]}, "refused: bracket.step is not an aspect graph"),
+    ({"graphs": ["a.brepose.npz", "b.brepose.npz"], "part_names": ["a"]}, "one name per graph"),
+    ({"graphs": ["a.brepose.npz"], "part_names": ["a/b"]}, "must start with a letter"),
+    ({"graphs": ["a.brepose.npz"], "fx": 500}, "fx"),
+], ids=["no-graphs", "refused", "names", "topic", "type"])
+def test_startup_errors_are_clear(ros, parameters, message):
+    with pytest.raises(StartupError, match=message):
+        start(ros, **parameters)
+
+
+def test_shipped_node_yaml_sets_only_declared_and_valid_parameters():
+    check_params_file(CONFIG / "node.yaml")
+    node_params = yaml.safe_load((CONFIG / "node.yaml").read_text())["estimator"]["ros__parameters"]
+    groups = EstimatorParams().to_dict()
+    EstimatorParams().with_flat({f"{g}.{k}": v for g in groups for k, v in node_params.get(g, {}).items()})
+
+
+def test_main_refuses_an_unknown_parameter_in_the_params_file(tmp_path, capsys):
+    params = tmp_path / "node.yaml"
+    params.write_text("estimator:\n  ros__parameters:\n    graphs: [a.npz]\n    matching:\n      empty_coeficient: 0.3\n")
+    assert main(["estimator", "--params-file", str(params)]) == 2
+    assert "unknown parameter(s): matching.empty_coeficient" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("content, message", [
+    (None, "does not exist"),
+    (b"#!/bin/sh\necho not data\n", "not an aspect graph file"),
+], ids=["missing", "not-a-graph"])
+def test_graph_file_refused_by_the_loader_stops_the_start(ros, tmp_path, content, message):
+    path = tmp_path / "bracket.brepose.npz"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(StartupError, match=f"aspect graph of part 'bracket' refused: .*{message}"):
+        ros.start_node({"graphs": [str(path)]}, estimator_factory=FakeEstimator)
