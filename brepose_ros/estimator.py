@@ -42,7 +42,7 @@ class Estimate:
     t: np.ndarray | None
     score: float
     error_ratio: float
-    view_index: int
+    view_index: int  # graph view nearest to the final pose
     n_image_segments: int
     n_matched: int
     n_nearest: int
@@ -51,6 +51,7 @@ class Estimate:
     image_segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     model_segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     timings: dict[str, float] = field(default_factory=dict)
+    matched_view: int = -1  # graph view the bipartite matching chose, before refinement
 
 
 @dataclass
@@ -199,9 +200,10 @@ class Estimator:
         visible = self.graph.seg_3d[self._visible_segments(best.R, best.t)]
         matches = pose.associate(visible, best.R, best.t, segments_n, p.pose.inlier_pixels / frame.focal)
         return Estimate(found, best.R if found else None, best.t if found else None, best.score, a.error_ratio,
-                        int(best.hypothesis.view), len(segments_px), len(a.model_index), int(a.nearest.sum()),
-                        segments_px[matches.image_index],
-                        pose.project_pixels(matches.model_3d, best.R, best.t, camera), timings)
+                        self._nearest_view(best.R, best.t), len(segments_px), len(a.model_index),
+                        int(a.nearest.sum()), segments_px[matches.image_index],
+                        pose.project_pixels(matches.model_3d, best.R, best.t, camera), timings,
+                        int(best.hypothesis.view))
 
     def _regions(self, segments_px: np.ndarray, segments_n: np.ndarray, camera: Camera) -> list[Region]:
         """The whole image, then clusters of touching segments (off-centre part among clutter)."""

@@ -121,3 +121,82 @@ def prediction_entry(image: str, estimate) -> dict:
             "R": np.asarray(estimate.R).ravel().tolist() if found else None,
             "t": np.asarray(estimate.t).ravel().tolist() if found else None,
             "score": float(estimate.score), "error_ratio": float(estimate.error_ratio)}
+
+
+@dataclass
+class ImageResult:
+    """One image of an evaluated scene."""
+
+    image: str
+    estimate: object  # estimator.Estimate
+    errors: PoseErrors | None  # None when nothing was found
+    view_rank: int  # rank of the matched view among the views nearest the truth (0 = nearest)
+
+
+def evaluate_scene(scene, estimator, model: ModelPoints, on_image=None) -> list[ImageResult]:
+    """Run ``estimator`` over a loaded scene (``scenes.load_scene``) and measure every image."""
+    import cv2
+
+    from .viewsphere import nearest_views
+
+    graph = estimator.graph
+    results = []
+    for entry in scene.entries:
+        image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise ValueError(f"cannot read image {entry.path}")
+        estimate = estimator.estimate(image, scene.camera)
+        errors = pose_errors(estimate.R, estimate.t, entry.R, entry.t, model) if estimate.found else None
+        direction = graph.model_center + entry.R.T @ entry.t  # model centre minus camera centre
+        order = nearest_views(graph.view_directions, direction, k=min(graph.n_views, 50))
+        hits = np.nonzero(order == estimate.matched_view)[0]
+        results.append(ImageResult(entry.image, estimate, errors, int(hits[0]) if len(hits) else 50))
+        if on_image is not None:
+            on_image(image, results[-1])
+    return results
+
+
+def scene_summary(results: list[ImageResult]) -> dict:
+    """``summarise`` plus the view-ranking rate and time per image."""
+    summary = summarise([r.errors for r in results])
+    n = max(len(results), 1)
+    summary["view_among_3_nearest"] = sum(r.view_rank < 3 for r in results) / n
+    summary["median_time_ms"] = float(np.median([r.estimate.timings.get("total", 0.0) for r in results]) * 1000)
+    return summary
+
+
+def plot_evaluation(results: list[ImageResult], path: str | Path, diameter_m: float, title: str = "") -> None:
+    """Cumulative rotation / translation error curves and score against correctness."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rot = np.sort([r.errors.rotation_deg for r in results if r.errors])
+    trans = np.sort([r.errors.translation_mm / (10.0 * diameter_m) for r in results if r.errors])
+    n = max(len(results), 1)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    for ax, values, label, limit in ((axes[0], rot, "rotation error (deg)", 20),
+                                     (axes[1], trans, "translation error (% of diameter)", 20)):
+        ax.step(np.concatenate([[0], values]), np.arange(len(values) + 1) / n, where="post")
+        ax.set_xlabel(label)
+        ax.set_ylabel("share of images")
+        ax.set_ylim(0, 1)
+        ax.set_xlim(0, limit)
+        ax.grid(alpha=0.3)
+    scores = np.array([r.estimate.score for r in results])
+    correct = np.array([bool(r.errors and r.errors.success) for r in results])
+    axes[2].scatter(np.arange(n)[correct], scores[correct], c="tab:green", label="correct", s=14)
+    axes[2].scatter(np.arange(n)[~correct], scores[~correct], c="tab:red", label="wrong / not found", s=14)
+    axes[2].set_xlabel("image")
+    axes[2].set_ylabel("score")
+    axes[2].set_ylim(0, 1)
+    axes[2].legend(loc="lower right")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def format_summary(summary: dict) -> str:
+    return "\n".join(f"  {k:24s} {v:.3f}" if isinstance(v, float) else f"  {k:24s} {v}" for k, v in summary.items())
