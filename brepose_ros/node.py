@@ -174,8 +174,6 @@ class EstimatorNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameters)
         self._worker = threading.Thread(target=self._work, name="estimator-worker", daemon=True)
         self._worker.start()
-        self.get_logger().info(f"estimating {', '.join(p.name for p in self.parts)} from "
-                               f"{self.resolve_topic_name('image_raw')}")
 
     # -- start-up ---------------------------------------------------------------------------
 
@@ -388,21 +386,29 @@ def main(argv: list[str] | None = None) -> int:
         print(f"estimator: cannot start: {exc}", file=sys.stderr)
         return 2
     rclpy.init(args=ros_args)
+    node = executor = None
     try:
         node = EstimatorNode()
-    except StartupError as exc:
-        print(f"estimator: cannot start: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    executor = make_executor(node.get_parameter("executor_threads").value)
-    executor.add_node(node)
-    try:
+        if not rclpy.ok():  # a signal during start-up: do not build an executor on a dead context
+            raise ExternalShutdownException()
+        executor = make_executor(node.get_parameter("executor_threads").value)
+        executor.add_node(node)
+        node.get_logger().info(f"estimating {', '.join(p.name for p in node.parts)} from "
+                               f"{node.resolve_topic_name('image_raw')}")
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception as exc:
+        if rclpy.ok():  # else a signal shut the context down while starting: a clean stop
+            if not isinstance(exc, StartupError):
+                raise
+            print(f"estimator: cannot start: {exc}", file=sys.stderr)
+            return 2
     finally:
-        executor.shutdown()
-        node.destroy_node()
+        if executor is not None:
+            executor.shutdown()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
     return 0
 

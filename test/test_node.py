@@ -1,9 +1,21 @@
-"""The ROS node in-process: topics, diagnostics levels, bad input, parameters, start-up errors."""
+"""The ROS node in-process: topics, diagnostics levels, bad input, parameters, start-up errors.
+
+The first tests run the real pipeline on a coarse aspect graph of the sample part and a
+rendered image; the others inject a fake estimator to reach cases (exceptions, slow frames,
+several parts) quickly and exactly.
+"""
 from __future__ import annotations
 
+import os
+import random
+import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -12,13 +24,15 @@ from rcl_interfaces.msg import ParameterType
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
+from brepose_ros.aspect_graph import AspectGraph, compile_aspect_graph
 from brepose_ros.camera import Camera
 from brepose_ros.estimator import Estimate
-from brepose_ros.geometry import matrix_from_quaternion
+from brepose_ros.geometry import matrix_from_quaternion, rotation_angle_deg
 from brepose_ros.node import StartupError, check_params_file, main
 from brepose_ros.params import EstimatorParams
 from brepose_ros.ros_io import pose_from_msg, status_values
-from node_helpers import FRAME, Harness
+from brepose_ros.scenes import SceneConfig, generate_scene
+from node_helpers import FRAME, TIMEOUT, Harness
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 CAMERA = Camera(200.0, 200.0, 79.5, 59.5, 160, 120)
@@ -71,6 +85,72 @@ def part_image(encoding_shape=(120, 160, 3), dtype=np.uint8) -> np.ndarray:
     image = np.zeros(encoding_shape, dtype=dtype)
     image[40:80, 50:110] = np.iinfo(dtype).max // 2
     return image
+
+
+@pytest.fixture(scope="session")
+def sample(sample_step, tmp_path_factory):
+    """A coarse (20 degree) aspect graph of the sample part and a rendered image with its pose."""
+    folder = tmp_path_factory.mktemp("node_sample")
+    graph = compile_aspect_graph(sample_step, step_deg=20.0, workers=1, progress=False)
+    path = graph.save(folder / "sample_bracket.brepose.npz")
+    scene = generate_scene(sample_step, folder / "scene", 3, seed=1,
+                           config=SceneConfig(width=320, height=240, fx=300.0))
+    truth = scene.entries[2]
+    return SimpleNamespace(graph=path, camera=scene.camera, truth=truth, diameter=graph.model_diameter,
+                           image=cv2.imread(str(truth.path), cv2.IMREAD_UNCHANGED))
+
+
+def start_real(ros: Harness, sample, **parameters):
+    return ros.start_node({"graphs": [str(sample.graph)], **parameters})
+
+
+def test_real_pipeline_publishes_the_pose_with_the_image_stamp(ros, sample):
+    start_real(ros, sample)
+    stamp = ros.publish(sample.image, sample.camera)
+    pose = ros.pose(stamp)
+    assert pose.header.frame_id == FRAME
+    R, t = pose_from_msg(pose)
+    assert rotation_angle_deg(R, sample.truth.R) < 5.0
+    assert np.linalg.norm(t - sample.truth.t) < 0.05 * sample.diameter
+    [status] = ros.answer(stamp)
+    assert status.name == "estimator: sample_bracket" and status.level in (DiagnosticStatus.OK, DiagnosticStatus.WARN)
+    values = status_values(status)
+    assert values["found"] == "True" and 0.0 <= float(values["error_ratio"]) <= 1.0
+    assert int(values["image_edges"]) > 0 and int(values["matched_pairs"]) > 0
+
+
+def test_real_pipeline_warns_without_the_part_and_recovers_from_a_bad_image(ros, sample):
+    start_real(ros, sample)
+    blank = ros.publish(np.full(sample.image.shape, 90, np.uint8), sample.camera)
+    [status] = ros.answer(blank)
+    assert status.level == DiagnosticStatus.WARN and "not found" in status.message
+    [status] = ros.answer(ros.publish(raw_image("mono8", 240, 320, 300, 300 * 240), sample.camera))
+    assert status.level == DiagnosticStatus.ERROR and "step" in status.message
+    ros.pose(ros.publish(sample.image, sample.camera))
+    assert blank not in ros.poses
+
+
+def test_real_pipeline_takes_a_new_threshold_without_restart(ros, sample):
+    node = start_real(ros, sample)
+    assert node.set_parameters([Parameter("pose.min_score", value=0.999)])[0].successful
+    [status] = ros.answer(ros.publish(sample.image, sample.camera))
+    assert status.level == DiagnosticStatus.WARN and "pose.min_score 0.999" in status.message
+
+
+def test_console_script_stops_cleanly_on_sigterm(sample, tmp_path):
+    params = tmp_path / "node.yaml"
+    params.write_text(f"estimator:\n  ros__parameters:\n    graphs: [{sample.graph}]\n")
+    env = {**os.environ, "ROS_DOMAIN_ID": str(random.randint(100, 200))}
+    env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
+    process = subprocess.Popen([sys.executable, "-m", "brepose_ros.node", "--params-file", str(params)],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True)
+    try:
+        assert "estimating sample_bracket" in process.stdout.readline()
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=TIMEOUT) == 0
+        assert "terminate called" not in process.stdout.read()
+    finally:
+        process.kill()
 
 
 def test_pose_and_diagnostics_carry_the_image_stamp(ros):
