@@ -309,11 +309,11 @@ def _grow_edges(segments, unit, lengths, sin_tolerance, group: np.ndarray, param
 
 def _chained(lo: np.ndarray, hi: np.ndarray, start: float, end: float, gap: float) -> np.ndarray:
     """Which intervals [lo, hi] connect to [start, end], directly or through each other, with gaps <= gap."""
-    all_lo, all_hi = np.r_[start, lo], np.r_[end, hi]
+    all_lo, all_hi = np.concatenate([[start], lo]), np.concatenate([[end], hi])
     order = np.argsort(all_lo, kind="stable")
     reach = np.maximum.accumulate(all_hi[order])
     chain = np.empty(len(order), dtype=int)
-    chain[order] = np.r_[0, np.cumsum(all_lo[order][1:] > reach[:-1] + gap)]
+    chain[order] = np.concatenate([[0], np.cumsum(all_lo[order][1:] > reach[:-1] + gap)])
     return chain[1:] == chain[0]
 
 
@@ -325,30 +325,31 @@ def refine_segments(segments: np.ndarray, edges: np.ndarray, params: EdgeParams)
     line. The edge pixels within ``merge_distance`` of a segment's line are collected, the
     segment is extended over those that continue it in steps up to ``hough_max_gap``, and a
     least-squares line through the pixels of the extended span gives the result. Pixels are
-    looked for up to ``merge_gap`` beyond each end; segments that grew that far look again
-    from their new ends. A segment with fewer than two pixels is kept as it is. Pieces of
-    one edge may overlap afterwards: run :func:`merge_segments` again.
+    looked for up to ``merge_gap`` beyond each end; segments that grew nearly that far look
+    again from their new ends, twice as far each round. A segment with fewer than two pixels
+    is kept as it is. Pieces of one edge may overlap afterwards: run :func:`merge_segments`
+    again.
     """
     refined = np.array(segments, dtype=np.float64).reshape(-1, 2, 2)
     active = np.flatnonzero(np.linalg.norm(refined[:, 1] - refined[:, 0], axis=1) > 0)
-    reach = params.merge_gap - params.hough_max_gap  # grown this far: more pixels may follow
-    for _ in range(int(np.hypot(*edges.shape) / max(reach, 1.0)) + 1):
-        if len(active) == 0:
-            break
+    window = max(params.merge_gap, 2.0 * params.hough_max_gap, 1.0)
+    while len(active) and window < 2.0 * np.hypot(*edges.shape):
         before = refined[active]
-        refined[active] = _refine_once(before, edges, params)
+        refined[active] = _refine_once(before, edges, params, window)
         length = np.linalg.norm(before[:, 1] - before[:, 0], axis=1)
         axis = (before[:, 1] - before[:, 0]) / length[:, None]
         t = ((refined[active] - before[:, :1]) * axis[:, None]).sum(axis=-1)
-        active = active[(reach > 0) & ((t[:, 0] < -reach) | (t[:, 1] > length + reach))]
+        reach = window - params.hough_max_gap  # grown this far: more pixels may follow
+        active = active[(t[:, 0] < -reach) | (t[:, 1] > length + reach)]
+        window *= 2.0
     return refined
 
 
-def _refine_once(segments: np.ndarray, edges: np.ndarray, params: EdgeParams) -> np.ndarray:
-    """One round of :func:`refine_segments` for segments of non-zero length, all at once."""
+def _refine_once(segments: np.ndarray, edges: np.ndarray, params: EdgeParams, window: float) -> np.ndarray:
+    """One round of :func:`refine_segments`, looking ``window`` beyond the ends of segments of non-zero length."""
     n = len(segments)
     lengths = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
-    owner, pixels, t = _pixels_along(segments, edges, params)
+    owner, pixels, t = _pixels_along(segments, edges, params.merge_distance, window)
     # the segment's own span counts as filled: add its two ends as virtual points
     owner = np.concatenate([owner, np.arange(n), np.arange(n)])
     t = np.concatenate([t, np.zeros(n), lengths])
@@ -382,11 +383,11 @@ def _refine_once(segments: np.ndarray, edges: np.ndarray, params: EdgeParams) ->
     return refined
 
 
-def _pixels_along(segments: np.ndarray, edges: np.ndarray, params: EdgeParams):
-    """(owner, pixel (x, y), t) of the edge pixels near each segment's line and span.
+def _pixels_along(segments: np.ndarray, edges: np.ndarray, distance: float, window: float):
+    """(owner, pixel (x, y), t) of the edge pixels within distance of each segment's line.
 
-    t is the position along the segment from its first end point; the span reaches
-    ``merge_gap`` beyond either end. Stepping one pixel along the major axis and a few
+    t is the position along the segment from its first end point; pixels are looked for
+    from ``window`` before the first end point to ``window`` after the second. Stepping one pixel along the major axis and a few
     across it visits every pixel of the band exactly once per segment.
     """
     first = segments[:, 0]
@@ -396,14 +397,14 @@ def _pixels_along(segments: np.ndarray, edges: np.ndarray, params: EdgeParams):
     minor_first = np.where(steep, first[:, 0], first[:, 1])
     major_unit = np.where(steep, unit[:, 1], unit[:, 0])  # |major_unit| >= 1 / sqrt(2)
     minor_unit = np.where(steep, unit[:, 0], unit[:, 1])
-    reach = np.linalg.norm(segments[:, 1] - first, axis=1) + params.merge_gap
-    ends = major_first[:, None] + np.stack([np.full_like(reach, -params.merge_gap), reach], axis=1) * major_unit[:, None]
+    reach = np.linalg.norm(segments[:, 1] - first, axis=1) + window
+    ends = major_first[:, None] + np.stack([np.full_like(reach, -window), reach], axis=1) * major_unit[:, None]
     lo, hi = np.ceil(ends.min(axis=1)).astype(int), np.floor(ends.max(axis=1)).astype(int)
     counts = np.maximum(hi - lo + 1, 0)
     owner = np.repeat(np.arange(len(segments)), counts)
     major = lo[owner] + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
     minor_centre = minor_first[owner] + (major - major_first[owner]) * minor_unit[owner] / major_unit[owner]
-    half = int(np.ceil(params.merge_distance * np.sqrt(2) + 0.5))  # rounding of the centre
+    half = int(distance * np.sqrt(2) + 0.5)  # |major_unit| >= 1/sqrt(2), plus rounding of the centre
     across = np.arange(-half, half + 1)
     minor = np.round(minor_centre)[:, None].astype(int) + across
     major = np.broadcast_to(major[:, None], minor.shape)
@@ -417,8 +418,7 @@ def _pixels_along(segments: np.ndarray, edges: np.ndarray, params: EdgeParams):
     owner, pixels = owner[hit], np.stack([x[hit], y[hit]], axis=1).astype(np.float64)
     offsets = pixels - first[owner]
     t = (offsets * unit[owner]).sum(axis=1)
-    distance = np.abs(offsets[:, 0] * unit[owner, 1] - offsets[:, 1] * unit[owner, 0])
-    near = distance <= params.merge_distance
+    near = np.abs(offsets[:, 0] * unit[owner, 1] - offsets[:, 1] * unit[owner, 0]) <= distance
     return owner[near], pixels[near], t[near]
 
 
