@@ -1,0 +1,111 @@
+"""The whole online pipeline on rendered scenes with exact ground truth.
+
+Bounds here are looser than what bench/accuracy.py measures (README), so that a real
+regression fails CI while a few unlucky images do not.
+"""
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from brepose_ros.aspect_graph import compile_aspect_graph
+from brepose_ros.cad import load_step, tessellate
+from brepose_ros.camera import Camera
+from brepose_ros.cli import estimate as estimate_cli
+from brepose_ros.estimator import Estimator
+from brepose_ros.evaluation import ModelPoints, evaluate_scene, scene_summary
+from brepose_ros.scenes import SceneConfig, generate_scene, load_scene
+
+
+@pytest.fixture(scope="module")
+def bracket(builtin_step, tmp_path_factory):
+    """The sharp bracket, its aspect graph at 8 degrees, and its surface points."""
+    step = builtin_step("sharp_bracket")
+    path = tmp_path_factory.mktemp("graph") / "sharp_bracket.brepose.npz"
+    compile_aspect_graph(step, step_deg=8.0, workers=2, progress=False).save(path)
+    mesh = tessellate(load_step(step))
+    return step, path, ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
+
+
+@pytest.fixture(scope="module")
+def estimator(bracket):
+    from brepose_ros.aspect_graph import AspectGraph
+
+    est = Estimator(AspectGraph.load(bracket[1]))
+    yield est
+    est.close()
+
+
+def scene_results(bracket, estimator, tmp_path, config, n=6, seed=3):
+    generate_scene(bracket[0], tmp_path / "scene", n, seed=seed, config=config)
+    return evaluate_scene(load_scene(tmp_path / "scene"), estimator, bracket[2])
+
+
+def test_clean_images_give_metric_poses(bracket, estimator, tmp_path):
+    results = scene_results(bracket, estimator, tmp_path, SceneConfig())
+    summary = scene_summary(results)
+    assert summary["success"] >= 4 / 6, summary
+    assert summary["er_below_0.01"] >= 4 / 6, summary
+    assert summary["median_rotation_deg"] < 2.0, summary
+    assert summary["median_translation_mm"] < 3.0, summary
+    for r in results:
+        assert set(r.estimate.timings) >= {"edges", "prefilter", "matching", "refinement", "total"}
+        if r.errors and r.errors.success:
+            assert r.estimate.score > 0.6 and 0.0 <= r.estimate.error_ratio <= 1.0
+            assert len(r.estimate.model_segments) == len(r.estimate.image_segments) > 3
+
+
+def test_off_centre_part_among_clutter_is_found(bracket, estimator, tmp_path):
+    results = scene_results(bracket, estimator, tmp_path, SceneConfig(offcenter=True, clutter=3), seed=5)
+    assert scene_summary(results)["success"] >= 3 / 6
+
+
+def test_partly_occluded_part_is_found(bracket, estimator, tmp_path):
+    results = scene_results(bracket, estimator, tmp_path, SceneConfig(occlusion=0.3), seed=7)
+    assert scene_summary(results)["success"] >= 2 / 6
+
+
+def test_image_without_the_part_is_not_found(estimator):
+    rng = np.random.default_rng(0)
+    camera = Camera.from_fov(640, 480, 600.0)
+    image = np.full((480, 640), 90, np.uint8)
+    cv2.circle(image, (200, 200), 60, 160, -1)  # a round blob: edges, but no bracket
+    image = np.clip(image + rng.normal(0, 2, image.shape), 0, 255).astype(np.uint8)
+    estimate = estimator.estimate(image, camera)
+    assert not estimate.found and estimate.R is None and estimate.t is None
+    blank = estimator.estimate(np.full((480, 640), 90, np.uint8), camera)
+    assert not blank.found and blank.n_image_segments == 0
+
+
+@pytest.mark.parametrize("image, message", [
+    (np.zeros((0, 0), np.uint8), "does not fit"),
+    (np.zeros((480, 640, 2), np.uint8), "channels"),
+    (np.zeros((240, 320), np.uint8), "does not fit"),
+])
+def test_bad_images_are_refused_with_a_reason(estimator, image, message):
+    with pytest.raises(ValueError, match=message):
+        estimator.estimate(image, Camera.from_fov(640, 480, 600.0))
+
+
+def test_estimate_command_writes_conventions_predictions(bracket, tmp_path, capsys):
+    generate_scene(bracket[0], tmp_path / "scene", 2, seed=11)
+    scene = load_scene(tmp_path / "scene")
+    images = [str(e.path) for e in scene.entries]
+    out = tmp_path / "pred.json"
+    code = estimate_cli.main(["--graph", str(bracket[1]), "--camera", str(tmp_path / "scene" / "camera.json"),
+                              *images, "-o", str(out)])
+    assert code == 0
+    predictions = json.loads(out.read_text())
+    assert [p["image"] for p in predictions] == images
+    for p in predictions:
+        assert set(p) == {"image", "R", "t", "score", "error_ratio"}
+        assert p["R"] is None or (len(p["R"]) == 9 and len(p["t"]) == 3)
+
+
+def test_estimate_command_reports_a_refused_graph(tmp_path, capsys):
+    bad = tmp_path / "bad.brepose.npz"
+    bad.write_bytes(b"not a graph")
+    code = estimate_cli.main(["--graph", str(bad), "--camera", str(tmp_path / "c.json"), "x.png", "-o", "p.json"])
+    assert code == 2
+    assert "error:" in capsys.readouterr().err
