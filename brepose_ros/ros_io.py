@@ -2,7 +2,7 @@
 
 Conversions (Image, CameraInfo, PoseStamped, DiagnosticStatus <-> numpy and the package's
 types) live here so that no script re-implements them; the pixel formats themselves are
-``image_codec``'s business. :class:`InProcessRos` runs nodes in one process,
+``image_codec``'s business. :class:`RosSession` spins nodes in a background thread,
 :class:`Player` and :class:`PoseRecorder` are the two halves of a replay: feed frames into
 the node's topics, collect what the node answers.
 """
@@ -31,6 +31,7 @@ from .bags import read_bag
 from .camera import Camera
 from .geometry import matrix_from_quaternion, quaternion_from_matrix
 from .image_codec import decode_image, encode_image
+from .scenes import load_scene
 
 #: the node's input QoS: sensor data (best effort, volatile) with depth 1, so the DDS reader
 #: itself keeps only the newest frame; best effort also matches reliable publishers
@@ -140,10 +141,11 @@ def make_executor(threads: int, context: Context | None = None) -> MultiThreaded
     return executor
 
 
-class InProcessRos:
-    """A private rclpy context whose executor spins in a daemon thread, for tests, the demo
-    and the benchmark. ``close`` tears down in the order that keeps the process from aborting
-    at exit: executor, nodes, context, thread (../shared/ROS2_ON_PIP.md)."""
+class RosSession:
+    """A private rclpy context whose executor spins in a background thread, so the caller's
+    thread is free to publish and wait (scripts, the demo, the benchmark, tests). ``close``
+    tears down in the order that keeps the process from aborting at exit: executor, nodes,
+    context, thread (../shared/ROS2_ON_PIP.md)."""
 
     def __init__(self, threads: int = 2, executor_factory: Callable = make_executor):
         self.context = Context()
@@ -168,7 +170,7 @@ class InProcessRos:
         rclpy.shutdown(context=self.context)
         self._thread.join(timeout=10.0)
 
-    def __enter__(self) -> "InProcessRos":
+    def __enter__(self) -> "RosSession":
         return self
 
     def __exit__(self, *exc) -> None:
@@ -217,9 +219,9 @@ class Playback:
     def answered(self, diagnostics: DiagnosticsListener) -> list[int]:
         return [s for s in self.published_at if s in diagnostics.by_stamp]
 
-    def latencies_ms(self, diagnostics: DiagnosticsListener) -> list[float]:
-        """Publish-to-diagnostics time of every answered image."""
-        return [1000.0 * (diagnostics.arrived[s] - t) for s, t in self.published_at.items() if s in diagnostics.arrived]
+    def latencies_ms(self, diagnostics: DiagnosticsListener) -> dict[int, float]:
+        """Publish-to-diagnostics time of every answered image, by stamp."""
+        return {s: 1000.0 * (diagnostics.arrived[s] - t) for s, t in self.published_at.items() if s in diagnostics.arrived}
 
 
 class Player:
@@ -274,11 +276,12 @@ class PoseRecorder:
     """Collects one part's answers as CONVENTIONS.md predictions.
 
     The pose comes from the PoseStamped, score and error ratio from the part's diagnostics
-    status of the same image (same header stamp). Images answered with ERROR (unusable input)
-    are left out; images where the part was not found get ``R``/``t`` null.
+    status of the same image (same header stamp); ``status_name`` None takes an array's only
+    status (a node with one part). Images answered with ERROR (unusable input) are left out;
+    images where the part was not found get ``R``/``t`` null.
     """
 
-    def __init__(self, node: Node, pose_topic: str, status_name: str,
+    def __init__(self, node: Node, pose_topic: str, status_name: str | None = None,
                  diagnostics: DiagnosticsListener | None = None):
         self.status_name = status_name
         self.poses: dict[int, PoseStamped] = {}
@@ -289,9 +292,13 @@ class PoseRecorder:
         self.poses[stamp_ns(msg.header.stamp)] = msg
 
     def values(self, stamp: int) -> dict[str, str]:
-        array = self.diagnostics.by_stamp.get(stamp)
-        status = next((s for s in array.status if s.name == self.status_name), None) if array else None
-        return status_values(status) if status else {}
+        """The diagnostics values of the part for one image ({} if it has none)."""
+        statuses = list(self.diagnostics.by_stamp[stamp].status) if stamp in self.diagnostics.by_stamp else []
+        if self.status_name is None:
+            statuses = statuses if len(statuses) == 1 else []
+        else:
+            statuses = [s for s in statuses if s.name == self.status_name]
+        return status_values(statuses[0]) if statuses else {}
 
     def predictions(self, names: dict[int, str] | None = None) -> list[dict]:
         """One entry per answered image in stamp order; ``names`` maps stamps to image paths."""
@@ -307,3 +314,14 @@ class PoseRecorder:
                 entry["R"], entry["t"] = R.ravel().tolist(), t.tolist()
             out.append(entry)
         return out
+
+
+def scene_names(bag: str | Path, scene: str | Path) -> dict[int, str]:
+    """Image stamps of a bag written from a scene (``bags.write_scene_bag``, gt.json order)
+    mapped to the scene's image paths, so recorded poses can be graded against gt.json."""
+    stamps = [frame.stamp_ns for frame in read_bag(bag)]
+    entries = load_scene(scene).entries
+    if len(stamps) != len(entries):
+        raise ValueError(f"{bag} holds {len(stamps)} images but scene {scene} has {len(entries)}: "
+                         "the bag was not written from this scene")
+    return {stamp: entry.image for stamp, entry in zip(stamps, entries)}

@@ -1,5 +1,5 @@
 """In-process rclpy harness for the node tests (../shared/ROS2_ON_PIP.md): a fresh context per
-test with the node's own executor spinning in a daemon thread (``ros_io.InProcessRos``), and a
+test with the node's own executor spinning in a daemon thread (``ros_io.RosSession``), and a
 probe node that publishes images and collects what the estimator node answers.
 """
 from __future__ import annotations
@@ -20,14 +20,14 @@ from std_msgs.msg import Header  # noqa: E402
 
 from brepose_ros.camera import Camera  # noqa: E402
 from brepose_ros.node import EstimatorNode  # noqa: E402
-from brepose_ros.ros_io import (SENSOR_QOS, DiagnosticsListener, InProcessRos, camera_info_msg,  # noqa: E402
+from brepose_ros.ros_io import (SENSOR_QOS, DiagnosticsListener, RosSession, camera_info_msg,  # noqa: E402
                                 image_msg, stamp_from_ns, stamp_ns, wait_until)
 
 TIMEOUT = 10.0
 FRAME = "camera_optical_frame"
 
 
-class Harness(InProcessRos):
+class Harness(RosSession):
     """One test's ROS world: context, executor thread and the probe node."""
 
     def __init__(self):

@@ -24,7 +24,7 @@ from rcl_interfaces.msg import ParameterType
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
-from brepose_ros.aspect_graph import AspectGraph, compile_aspect_graph
+from brepose_ros.aspect_graph import compile_aspect_graph
 from brepose_ros.camera import Camera
 from brepose_ros.estimator import Estimate
 from brepose_ros.geometry import matrix_from_quaternion, rotation_angle_deg

@@ -1,0 +1,53 @@
+"""Play a rosbag2 of Image + CameraInfo (written by brepose-bag or any camera recording) into
+the estimator node's topics, and report how the node kept up.
+
+    python launch_free_scripts/play_bag.py out/demo/bag                       # lock-step
+    python launch_free_scripts/play_bag.py camera.bag --mode rate --speed 0.5  # recorded rate
+
+``lockstep`` publishes the next image only when the node has published the diagnostics of
+the previous one (every frame is answered, as fast as the node can); ``rate`` keeps the
+recorded spacing like ``ros2 bag play`` and the node skips what it cannot keep up with.
+The node runs in another process (run_estimator.py): leave ROS_AUTOMATIC_DISCOVERY_RANGE
+unset or LOCALHOST in both shells, OFF confines discovery to one process.
+"""
+import argparse
+import statistics
+import sys
+
+from brepose_ros.bags import BagError
+from brepose_ros.ros_io import Player, RosSession, bag_frames
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("bag", help="rosbag2 folder (mcap or sqlite3)")
+    parser.add_argument("--mode", choices=("lockstep", "rate"), default="lockstep")
+    parser.add_argument("--speed", type=float, default=1.0, help="rate mode: playback speed factor")
+    parser.add_argument("--bag-topic", help="the bag's Image topic if it has several")
+    parser.add_argument("--bag-info-topic", help="the bag's CameraInfo topic (default: beside the images)")
+    parser.add_argument("--image-topic", default="image_raw", help="where the node listens for images")
+    parser.add_argument("--info-topic", default="camera_info", help="where the node listens for CameraInfo")
+    parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the node / an answer")
+    args = parser.parse_args()
+
+    with RosSession() as ros:
+        player = Player(ros.node("bag_player"), args.image_topic, args.info_topic)
+        try:
+            player.wait_for_node(args.timeout)
+            playback = player.play(bag_frames(args.bag, args.bag_topic, args.bag_info_topic),
+                                   args.mode, args.speed, args.timeout)
+        except (BagError, TimeoutError) as exc:
+            print(f"play_bag: {exc}", file=sys.stderr)
+            return 2
+        if playback.published_at:
+            player.diagnostics.wait_for(max(playback.published_at), args.timeout)
+        answered = playback.answered(player.diagnostics)
+        latencies = list(playback.latencies_ms(player.diagnostics).values())
+        print(f"published {len(playback.published_at)} images in {playback.seconds:.1f} s, "
+              f"the node answered {len(answered)} ({len(answered) / max(playback.seconds, 1e-9):.2f}/s)"
+              + (f", median latency {statistics.median(latencies):.0f} ms" if latencies else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
