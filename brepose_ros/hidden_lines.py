@@ -13,10 +13,14 @@ orthographic projector along the viewing direction:
   to its visible parameter range; for outlines of curved faces a curve on the surface), so
   no back-projection is needed. Sharp edges, outlines (silhouettes of curved faces) and,
   on request, smooth tangent seams (Rg1 lines) are separate compounds.
-* ``"poly"``: HLRBRep_PolyAlgo on the triangulation, 4-6 times faster on parts with tori,
-  spheres or B-spline faces (bench/compile.py). It only returns 2D pieces, so each piece
-  is located on the 3D polyline it came from: the mesh polygon of a B-Rep edge or the
-  outline of a curved face's mesh in this view (front-most one if several project onto it).
+* ``"poly"`` (the default): HLRBRep_PolyAlgo on the triangulation. Exact HLR costs 0.1-0.3 s
+  a view on the real parts of 135-214 faces (tori, spheres, B-spline faces), too slow for
+  thousands of views; PolyAlgo is 1.4-3.5 times faster on those and about as fast on simple
+  parts, and finds the same lines: 98-100 % of the exact lines' length lies within 1 % of
+  the diameter of its lines and vice versa on the nine real parts. It only returns
+  2D pieces, so each piece's end points are lifted onto the 3D segment they lie on: the
+  mesh polygon of a B-Rep edge or the outline of a curved face's mesh in this view (the
+  front-most one if several project onto the same place).
 
 Curves become line sections by a chord tolerance relative to the model diameter: curves
 (or mesh polygons) are sampled at half the tolerance in 3D, joined end to end where exactly
@@ -41,13 +45,14 @@ SHARP, OUTLINE, SMOOTH = 0, 1, 2
 KIND_NAMES = ("sharp", "outline", "smooth")
 METHODS = ("exact", "poly")
 DEFAULT_METHOD = "poly"
-#: Chord tolerance and shortest kept section, as fractions of the model diameter. At a
-#: typical 300-pixel part, 0.5 % is 1.5 px and 1 % is 3 px.
+#: Chord tolerance and shortest kept section, as fractions of the model diameter: 1.5 px
+#: on a typical 300-pixel part. The matcher can keep only longer ones (tetrad length).
 DEFAULT_CHORD_TOLERANCE = 0.005
 DEFAULT_MIN_LENGTH = 0.005
 #: End points closer than this (fraction of the diameter) are the same point.
 _SAME_POINT = 1e-6
-#: Angular deflection of the mesh in "poly" mode (radians): keeps small holes round.
+#: Angular deflection of the mesh in "poly" mode (radians). Coarser meshes lose outlines
+#: of small curved faces (0.5 rad: 96.6 % instead of 98.4 % of Motor1_holder's exact lines).
 _MESH_ANGLE = 0.35
 
 
