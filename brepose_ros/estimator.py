@@ -179,7 +179,7 @@ class Estimator:
         segments_px = extract_segments(image, p.edges)
         clock = _lap(timings, "edges", clock)
         not_found = Estimate(False, None, None, 0.0, 1.0, -1, len(segments_px), 0, 0, timings=timings)
-        if len(segments_px) < 3:
+        if len(segments_px) < MIN_REGION_SEGMENTS:
             return not_found
         segments_n = pose.undistort_segments(segments_px, camera)
         regions = self._regions(segments_px, segments_n, camera)
@@ -212,7 +212,7 @@ class Estimator:
         groups += cluster_segments(segments_px, gap=0.03 * np.hypot(camera.width, camera.height))
         regions = []
         for indices in groups[: p.max_regions]:
-            if len(indices) >= 3:
+            if len(indices) >= MIN_REGION_SEGMENTS:
                 regions.append(self._region(indices, segments_n))
         return [r for r in regions if r is not None]
 
@@ -258,7 +258,7 @@ class Estimator:
                 moved = _apply_similarity(model.segments, *similarity)
         tolerance = p.coverage_tolerance
         moved, polish = matching.align_to_lines(moved, region.features.segments,
-                                                (4 * tolerance, 2 * tolerance, tolerance))
+                                                (3 * tolerance, tolerance))
         a, angle, b = similarity
         c, s = np.cos(angle), np.sin(angle)
         A = polish[:, :2] @ (a * np.array([[c, -s], [s, c]]))
@@ -352,6 +352,9 @@ class Estimator:
         view = self._nearest_view(R, t)
         return slice(self.graph.seg_offsets[view], self.graph.seg_offsets[view + 1])
 
+
+#: fewer segments than this cannot pin down a view, in a region or in a whole image
+MIN_REGION_SEGMENTS = 6
 
 #: graph neighbours tried per step of the view search
 NEIGHBOURS = 8

@@ -216,7 +216,7 @@ def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarr
 
 
 def coverage(source: np.ndarray, target: np.ndarray, tolerance: float, max_angle_deg: float = 12.0,
-             per_segment: int = 6) -> float:
+             per_segment: int = 4) -> float:
     """Share of the length of ``source`` segments lying within ``tolerance`` of a parallel
     ``target`` segment: an oriented chamfer test in the normalised frame."""
     if len(source) == 0 or len(target) == 0:
@@ -246,14 +246,14 @@ class ChamferPrefilter:
     EXTENT = 2.0
     TRUNCATE = 0.25
 
-    def __init__(self, view_features: list[SegmentFeatures], points_per_view: int = 48):
+    def __init__(self, view_features: list[SegmentFeatures], points_per_view: int = 32):
         pts, ori = [], []
         for f in view_features:
             p, o = _spread_points(f.segments, points_per_view)
             pts.append(p)
             ori.append(o)
-        self.points = np.stack(pts)  # (V, P, 2)
-        self.orientations = np.stack(ori)  # (V, P) modulo pi
+        self.points = np.stack(pts).astype(np.float32)  # (V, P, 2)
+        self.orientations = np.stack(ori).astype(np.float32)  # (V, P) modulo pi
 
     def distance_maps(self, region: SegmentFeatures) -> np.ndarray:
         import cv2
@@ -271,6 +271,7 @@ class ChamferPrefilter:
 
     def scores(self, maps: np.ndarray, phis: np.ndarray) -> np.ndarray:
         """(V, R) mean truncated oriented distance of view v turned by phis[v, r]."""
+        phis = phis.astype(np.float32)
         c, s = np.cos(phis)[..., None], np.sin(phis)[..., None]
         x, y = self.points[:, None, :, 0], self.points[:, None, :, 1]
         xr, yr = c * x - s * y, s * x + c * y  # (V, R, P)

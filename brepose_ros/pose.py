@@ -245,18 +245,24 @@ class EdgeEvidence:
         if len(model_px) == 0:
             return 0.0
         h, w = self.shape
-        pts = np.asarray(model_px, np.float32).reshape(-1, 2)
-        pts = np.clip(pts, -4 * max(h, w), 4 * max(h, w))
-        hull = cv2.convexHull(pts).reshape(-1, 2)
+        pts = np.clip(np.asarray(model_px, np.float64).reshape(-1, 2), -4.0 * max(h, w), 5.0 * max(h, w))
+        hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2)
         center = hull.mean(axis=0)
         hull = center + (1.0 + self.OUTLINE_MARGIN) * (hull - center)
-        outline = np.zeros((h, w), np.uint8)
-        cv2.fillConvexPoly(outline, np.round(hull).astype(np.int32), 1)
-        inside = self.edges & (outline > 0)
+        # work in the outline's bounding box only: a part rarely fills the image
+        pad = int(np.ceil(tolerance_px)) + 1
+        x0, y0 = np.maximum(np.floor(hull.min(axis=0)).astype(int) - pad, 0)
+        x1, y1 = np.minimum(np.ceil(hull.max(axis=0)).astype(int) + pad + 1, [w, h])
+        if x1 <= x0 or y1 <= y0:
+            return 0.0
+        offset = np.array([x0, y0])
+        outline = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        cv2.fillConvexPoly(outline, np.round(hull - offset).astype(np.int32), 1)
+        inside = self.edges[y0:y1, x0:x1] & (outline > 0)
         if not inside.any():
             return 0.0
-        canvas = np.full((h, w), 255, np.uint8)
-        for seg in np.round(pts.reshape(-1, 2, 2)).astype(np.int32):
+        canvas = np.full(outline.shape, 255, np.uint8)
+        for seg in np.round(pts.reshape(-1, 2, 2) - offset).astype(np.int32):
             cv2.line(canvas, (int(seg[0, 0]), int(seg[0, 1])), (int(seg[1, 0]), int(seg[1, 1])), 0, 1)
         near = cv2.distanceTransform(canvas, cv2.DIST_L2, 3) <= tolerance_px
         return float((near & inside).sum() / inside.sum())
