@@ -30,7 +30,7 @@ from brepose_ros.estimator import Estimate
 from brepose_ros.geometry import matrix_from_quaternion, rotation_angle_deg
 from brepose_ros.node import StartupError, check_params_file, main
 from brepose_ros.params import EstimatorParams
-from brepose_ros.ros_io import pose_from_msg, status_values
+from brepose_ros.ros_io import camera_info_msg, pose_from_msg, status_values, wait_until
 from brepose_ros.scenes import SceneConfig, generate_scene
 from node_helpers import FRAME, TIMEOUT, Harness
 
@@ -211,6 +211,12 @@ def test_missing_camera_info_is_an_error_until_fallback_intrinsics_are_set(ros):
     [status] = ros.answer(ros.publish(part_image()))
     assert status.level == DiagnosticStatus.ERROR and "no CameraInfo" in status.message
     assert "/camera_info" in status.message
+    uncalibrated = camera_info_msg(CAMERA, ros.header())
+    uncalibrated.k = [0.0] * 9
+    ros.info_pub.publish(uncalibrated)
+    wait_until(lambda: node.camera_info_error, TIMEOUT, "the uncalibrated CameraInfo")
+    [status] = ros.answer(ros.publish(part_image()))
+    assert status.level == DiagnosticStatus.ERROR and "the last one was refused" in status.message
     node.set_parameters([Parameter("fx", value=210.0), Parameter("fy", value=210.0),
                          Parameter("cx", value=80.0), Parameter("cy", value=60.0)])
     ros.pose(ros.publish(part_image()))
