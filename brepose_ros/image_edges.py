@@ -417,25 +417,24 @@ def _pixels_along(segments: np.ndarray, edges: np.ndarray, distance: float, wind
     minor_first = np.where(steep, first[:, 0], first[:, 1])
     major_unit = np.where(steep, unit[:, 1], unit[:, 0])  # |major_unit| >= 1 / sqrt(2)
     minor_unit = np.where(steep, unit[:, 0], unit[:, 1])
+    height, width = edges.shape
     reach = np.linalg.norm(segments[:, 1] - first, axis=1) + window
     ends = major_first[:, None] + np.stack([np.full_like(reach, -window), reach], axis=1) * major_unit[:, None]
-    lo, hi = np.ceil(ends.min(axis=1)).astype(int), np.floor(ends.max(axis=1)).astype(int)
+    lo = np.maximum(np.ceil(ends.min(axis=1)), 0).astype(np.intp)
+    hi = np.minimum(np.floor(ends.max(axis=1)), np.where(steep, height, width) - 1).astype(np.intp)
     counts = np.maximum(hi - lo + 1, 0)
     owner = np.repeat(np.arange(len(segments)), counts)
     major = lo[owner] + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
     minor_centre = minor_first[owner] + (major - major_first[owner]) * minor_unit[owner] / major_unit[owner]
     half = int(distance * np.sqrt(2) + 0.5)  # |major_unit| >= 1/sqrt(2), plus rounding of the centre
-    across = np.arange(-half, half + 1)
-    minor = np.round(minor_centre)[:, None].astype(int) + across
-    major = np.broadcast_to(major[:, None], minor.shape)
-    owner = np.broadcast_to(owner[:, None], minor.shape)
-    x = np.where(steep[owner], minor, major).ravel()
-    y = np.where(steep[owner], major, minor).ravel()
-    owner = owner.ravel()
-    height, width = edges.shape
-    hit = (x >= 0) & (x < width) & (y >= 0) & (y < height)
-    hit[hit] = edges[y[hit], x[hit]] > 0
-    owner, pixels = owner[hit], np.stack([x[hit], y[hit]], axis=1).astype(np.float64)
+    minor = np.round(minor_centre).astype(np.intp)[:, None] + np.arange(-half, half + 1)
+    sample_steep = steep[owner][:, None]
+    hit = (minor >= 0) & (minor < np.where(sample_steep, width, height))
+    flat = np.where(sample_steep, major[:, None] * width + minor, minor * width + major[:, None])
+    hit[hit] = edges.ravel()[flat[hit]] > 0
+    rows, columns = np.nonzero(hit)
+    owner, flat = owner[rows], flat[rows, columns]
+    pixels = np.stack([flat % width, flat // width], axis=1).astype(np.float64)
     offsets = pixels - first[owner]
     t = (offsets * unit[owner]).sum(axis=1)
     near = np.abs(offsets[:, 0] * unit[owner, 1] - offsets[:, 1] * unit[owner, 0]) <= distance
