@@ -96,7 +96,8 @@ def extract_segments(image: np.ndarray, params: EdgeParams = EdgeParams()) -> np
     """Merged straight line segments (N, 2, 2) float64 of an image, longest first.
 
     ``image`` is uint8 or uint16 (float is read on the uint8 scale), gray (H, W) or
-    (H, W, 1), BGR or BGRA (H, W, 3|4). A constant image has no edges and gives (0, 2, 2).
+    (H, W, 1), BGR or BGRA (H, W, 3|4); anything else, an empty image or NaN/inf raise
+    ValueError. A constant image has no edges and gives (0, 2, 2).
     """
     gray = to_gray(image)
     if gray.max() == gray.min():
