@@ -65,6 +65,8 @@ from .ros_io import (DIAGNOSTICS_TOPIC, LATEST_ONLY, diagnostic_status, image_fr
 
 NODE_NAME = "estimator"
 INTRINSICS = ("fx", "fy", "cx", "cy")
+#: seconds an image waits for the first CameraInfo when there are no fallback intrinsics
+CAMERA_INFO_GRACE = 0.2
 #: name -> (default, description, read_only); graphs and part names cannot change while running
 NODE_PARAMETERS: dict[str, tuple[Any, str, bool]] = {
     "graphs": (Parameter.Type.STRING_ARRAY, "paths of precompiled aspect graphs (brepose-compile), one per part", True),
@@ -166,6 +168,7 @@ class EstimatorNode(Node):
             raise
         self.camera_info: Camera | None = None
         self.camera_info_error = ""
+        self._camera_info_arrived = threading.Event()
         self.frames = NewestFrame()
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, LATEST_ONLY)
@@ -261,6 +264,7 @@ class EstimatorNode(Node):
             self.camera_info, self.camera_info_error = camera_from_info(msg), ""
         except CameraError as exc:
             self.camera_info, self.camera_info_error = None, str(exc)
+        self._camera_info_arrived.set()
 
     def _on_image(self, msg: Image) -> None:
         self.frames.put((msg, time.perf_counter()))
@@ -275,11 +279,18 @@ class EstimatorNode(Node):
                 self.get_logger().error(f"answering an image failed:\n{traceback.format_exc()}")
 
     def camera_for(self, height: int, width: int) -> Camera:
-        """The latest CameraInfo, else the fallback intrinsics parameters; BadInput if neither."""
+        """The latest CameraInfo, else the fallback intrinsics parameters; BadInput if neither.
+
+        Image and CameraInfo travel on two topics, so a camera's first image can overtake its
+        first CameraInfo: without a fallback the worker waits CAMERA_INFO_GRACE for one.
+        """
+        fx, fy, cx, cy = (float(self.get_parameter(n).value) for n in INTRINSICS)
+        fallback = min(fx, fy, cx, cy) > 0
+        if self.camera_info is None and not fallback:
+            self._camera_info_arrived.wait(CAMERA_INFO_GRACE)
         camera = self.camera_info
         if camera is None:
-            fx, fy, cx, cy = (float(self.get_parameter(n).value) for n in INTRINSICS)
-            if min(fx, fy, cx, cy) <= 0:
+            if not fallback:
                 refused = f" (the last one was refused: {self.camera_info_error})" if self.camera_info_error else ""
                 raise BadInput(f"no CameraInfo received on {self.resolve_topic_name('camera_info')}{refused} "
                                "and no fallback intrinsics (parameters fx, fy, cx, cy)")

@@ -16,10 +16,10 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
+import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-import rclpy
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
@@ -40,8 +40,6 @@ LATEST_ONLY = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 #: what cameras (and our players) publish with
 SENSOR_QOS = qos_profile_sensor_data
 DIAGNOSTICS_TOPIC = "/diagnostics"
-LEVEL_NAMES = {DiagnosticStatus.OK: "OK", DiagnosticStatus.WARN: "WARN",
-               DiagnosticStatus.ERROR: "ERROR", DiagnosticStatus.STALE: "STALE"}
 
 
 def stamp_ns(stamp: Time) -> int:
@@ -227,8 +225,7 @@ class Playback:
 class Player:
     """Publishes Image + CameraInfo frames into the node's input topics.
 
-    A frame is ``(stamp_ns, Image, CameraInfo or None)``, messages or their serialized CDR
-    bytes (see :func:`bag_frames`).
+    A frame is ``(stamp_ns, Image, CameraInfo or None)`` (see :func:`bag_frames`).
     ``lockstep`` waits after each image for the node's diagnostics of that image (same header
     stamp), so replay runs exactly as fast as the node keeps up and no frame is lost;
     ``rate`` keeps the recorded spacing of the stamps divided by ``speed``, like

@@ -9,8 +9,6 @@ import os
 # discovery off: nodes in this process still talk, other developers' test runs are not heard
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")
 
-import time  # noqa: E402
-
 import numpy as np  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
@@ -64,7 +62,6 @@ class Harness(RosSession):
         msg.header = header
         if camera is not None:
             self.info_pub.publish(camera_info_msg(camera, header))
-            time.sleep(0.02)  # two topics: let the CameraInfo arrive first
         self.image_pub.publish(msg)
         return self._next_stamp
 
