@@ -121,6 +121,8 @@ class NewestFrame:
 
 @dataclass
 class Part:
+    """One part the node looks for: its estimator and its output topics."""
+
     name: str
     status_name: str
     estimator: Any

@@ -30,7 +30,8 @@ from brepose_ros.estimator import Estimate
 from brepose_ros.geometry import matrix_from_quaternion, rotation_angle_deg
 from brepose_ros.node import StartupError, check_params_file, main
 from brepose_ros.params import EstimatorParams
-from brepose_ros.ros_io import camera_info_msg, pose_from_msg, status_values, wait_until
+from brepose_ros.overlay import FOUND as FOUND_COLOUR
+from brepose_ros.ros_io import camera_info_msg, image_from_msg, pose_from_msg, stamp_ns, status_values, wait_until
 from brepose_ros.scenes import SceneConfig, generate_scene
 from node_helpers import FRAME, TIMEOUT, Harness
 
@@ -38,6 +39,7 @@ CONFIG = Path(__file__).resolve().parents[1] / "config"
 CAMERA = Camera(200.0, 200.0, 79.5, 59.5, 160, 120)
 R_FAKE = matrix_from_quaternion(np.array([0.1, -0.2, 0.3, 0.9]))
 T_FAKE = np.array([0.01, -0.02, 0.4])
+SEGMENTS = np.array([[[50.0, 40.0], [110.0, 40.0]], [[50.0, 80.0], [110.0, 80.0]]])
 
 
 class FakeEstimator:
@@ -55,7 +57,8 @@ class FakeEstimator:
         found = bool(image.max() > 0)
         return Estimate(found, R_FAKE if found else None, T_FAKE if found else None,
                         score=0.9 if found else 0.1, error_ratio=0.2, view_index=3,
-                        n_image_segments=12, n_matched=8, n_nearest=6, timings={"edges": 0.001})
+                        n_image_segments=12, n_matched=8, n_nearest=6, timings={"edges": 0.001},
+                        image_segments=SEGMENTS, model_segments=SEGMENTS + 1.0)
 
     def close(self) -> None:
         pass
@@ -259,6 +262,19 @@ def test_every_parameter_is_documented(ros):
     assert len(descriptors) > 40
     assert all(d.description for d in descriptors)
     assert node.describe_parameters(["matching.workers"])[0].type == ParameterType.PARAMETER_INTEGER
+
+
+def test_debug_image_draws_the_matched_edges_while_subscribed(ros):
+    node = start(ros)
+    overlays = []
+    ros.probe.create_subscription(Image, node.parts[0].debug_pub.topic_name, overlays.append, 10)
+    wait_until(lambda: node.parts[0].debug_pub.get_subscription_count() > 0, TIMEOUT, "debug subscription")
+    stamp = ros.publish(part_image((120, 160), np.uint16), CAMERA)
+    overlay = wait_until(lambda: overlays, TIMEOUT, "a debug image")[0]
+    assert overlay.encoding == "bgr8" and stamp_ns(overlay.header.stamp) == stamp
+    pixels = image_from_msg(overlay)
+    assert pixels.shape == (120, 160, 3)
+    assert tuple(pixels[41, 80]) == FOUND_COLOUR, "the model edge at y=41 is drawn in green"
 
 
 def test_several_parts_get_their_own_topics_and_statuses(ros):
