@@ -13,12 +13,8 @@ from typing import Any
 
 import yaml
 
+from .documented import doc
 from .image_edges import EdgeParams
-
-
-def doc(text: str, default: Any) -> Any:
-    """A dataclass field with its default and documentation."""
-    return field(default=default, metadata={"doc": text})
 
 
 @dataclass(frozen=True)
