@@ -1,10 +1,13 @@
 """Stage 6: the online pipeline behind one call: image + intrinsics in, metric 6-DoF pose out.
 
-    image --image_edges--> segments (pixels) --undistort--> normalised camera coordinates
-      --regions--> candidate regions (whole image, clusters of touching segments)
-      --virtual camera + metric_space--> normalised region edge set per region
-      --pre-filter--> shortlist of views --matching--> (view, rotation, similarity) hypotheses
-      --pose--> first metric pose --refine--> final pose --edge support--> score, found?
+    image --image_edges--> segments (pixels) + Canny edge pixels
+      --undistort--> segments in normalised camera coordinates
+      --regions--> whole image and clusters of touching segments
+      --virtual camera + metric_space--> a normalised edge set per region
+      --chamfer pre-filter--> shortlist of (view, rotation) per region
+      --Kuhn-Munkres + similarity + 2D ICP--> hypotheses ranked by two-way edge coverage
+      --pose--> first metric pose per hypothesis --refine--> refined poses, scored on edge pixels
+      --hill-climb over neighbouring views--> best pose; found if its score passes pose.min_score
 
 The views of one image are spread over worker threads in batches (Kuhn-Munkres and most
 numpy kernels release the GIL; one batch per thread, not one task per view, since each
@@ -21,9 +24,10 @@ import numpy as np
 from . import matching, pose
 from .aspect_graph import AspectGraph
 from .camera import Camera
-from .image_edges import canny_edges, extract_segments, to_gray
-from .metric_space import outline_normalisation as normalisation_of, segment_lengths
 from .geometry import rotation_between
+from .image_edges import canny_edges, extract_segments, to_gray
+from .metric_space import outline_normalisation as normalisation_of
+from .metric_space import segment_lengths
 from .params import EstimatorParams
 
 
