@@ -358,7 +358,7 @@ class Estimator:
 
 
 #: fewer segments than this cannot pin down a view, in a region or in a whole image
-MIN_REGION_SEGMENTS = 6
+MIN_REGION_SEGMENTS = 4
 
 #: graph neighbours tried per step of the view search
 NEIGHBOURS = 8
