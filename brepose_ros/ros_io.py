@@ -141,17 +141,26 @@ def make_executor(threads: int, context: Context | None = None) -> MultiThreaded
 
 class RosSession:
     """A private rclpy context whose executor spins in a background thread, so the caller's
-    thread is free to publish and wait (scripts, the demo, the benchmark, tests). ``close``
-    tears down in the order that keeps the process from aborting at exit: executor, nodes,
-    context, thread (../shared/ROS2_ON_PIP.md)."""
+    thread is free to publish and wait (scripts, the demo, the benchmark, tests).
+
+    ``close`` stops the spin loop first and only then shuts the executor down, destroys the
+    nodes and the context, the order that keeps the process from aborting at exit
+    (../shared/ROS2_ON_PIP.md): rclpy 9.1's ``Executor.shutdown`` does not wait for callbacks
+    in flight, which then hit its destroyed guard condition (InvalidHandle tracebacks).
+    """
 
     def __init__(self, threads: int = 2, executor_factory: Callable = make_executor):
         self.context = Context()
         rclpy.init(context=self.context)
         self.executor = executor_factory(threads, context=self.context)
         self.nodes: list[Node] = []
-        self._thread = threading.Thread(target=self.executor.spin, name="ros-executor", daemon=True)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, name="ros-executor", daemon=True)
         self._thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set() and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.1)
 
     def add(self, node: Node) -> Node:
         self.nodes.append(node)
@@ -162,11 +171,12 @@ class RosSession:
         return self.add(Node(name, context=self.context))
 
     def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10.0)
         self.executor.shutdown()
         for node in reversed(self.nodes):
             node.destroy_node()
         rclpy.shutdown(context=self.context)
-        self._thread.join(timeout=10.0)
 
     def __enter__(self) -> "RosSession":
         return self
