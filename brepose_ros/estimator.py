@@ -36,9 +36,11 @@ class Estimate:
     """What the estimator found in one image (CONVENTIONS.md pose and metrics).
 
     ``R``/``t`` are T_cam_model (metres) or None when the part was not found. ``score`` in
-    [0, 1] is the share of the projected visible model edges that an image edge confirms;
-    ``error_ratio`` the share of the chosen view's matched model edges outside the nearest
-    group (0 best, 1 worst).
+    [0, 1] weighs how well projected model edges and image edge pixels explain each other
+    (``Estimator._score``); ``error_ratio`` is the share of the chosen view's model edges
+    outside the nearest group of edge pairs at the final pose (CONVENTIONS.md; 0 best,
+    1 worst): ``n_matched`` of them found an image line within a loose reach, ``n_nearest``
+    lie within ``pose.inlier_pixels`` of it.
     """
 
     found: bool
@@ -106,6 +108,10 @@ class Candidate:
     t: np.ndarray
     hypothesis: Hypothesis
 
+
+#: how far (in units of pose.inlier_pixels) a model edge may lie from an image line and
+#: still count as matched for the error ratio; within 1 unit it is in the nearest group
+ERROR_RATIO_REACH = 4.0
 
 #: association tolerances of the refinement rounds, in units of pose.inlier_pixels
 REFINE_SCHEDULE = (8.0, 4.0, 2.0, 1.0, 1.0, 1.0)
@@ -200,13 +206,21 @@ class Estimator:
         clock = _lap(timings, "refinement", clock)
         timings["total"] = sum(timings.values())
         found = best.score >= p.pose.min_score
-        a = best.hypothesis.assignment
+        # the paper's pairs at the final pose: the chosen view's visible model edges matched
+        # to image lines within a loose tolerance; the nearest group lies within inlier_pixels
+        # (edges that project shorter than the line detector's minimum length cannot be found
+        # in any image and are left out)
         visible = self.graph.seg_3d[self._visible_segments(best.R, best.t)]
-        matches = pose.associate(visible, best.R, best.t, segments_n, p.pose.inlier_pixels / frame.focal)
-        return Estimate(found, best.R if found else None, best.t if found else None, best.score, a.error_ratio,
-                        self._nearest_view(best.R, best.t), len(segments_px), len(a.model_index),
-                        int(a.nearest.sum()), segments_px[matches.image_index],
-                        pose.project_pixels(matches.model_3d, best.R, best.t, camera), timings,
+        lengths = np.linalg.norm(np.diff(pose.project_pixels(visible, best.R, best.t, camera), axis=1), axis=2)[:, 0]
+        visible = visible[lengths >= p.edges.min_length_fraction * np.hypot(camera.width, camera.height)]
+        tolerance = p.pose.inlier_pixels / frame.focal
+        pairs = pose.associate(visible, best.R, best.t, segments_n, ERROR_RATIO_REACH * tolerance)
+        nearest = pairs.distances <= tolerance
+        error_ratio = 1.0 - float(nearest.sum()) / max(len(visible), 1)
+        return Estimate(found, best.R if found else None, best.t if found else None, best.score, error_ratio,
+                        self._nearest_view(best.R, best.t), len(segments_px), len(pairs.model_index),
+                        int(nearest.sum()), segments_px[pairs.image_index[nearest]],
+                        pose.project_pixels(pairs.model_3d[nearest], best.R, best.t, camera), timings,
                         int(best.hypothesis.view))
 
     def _regions(self, segments_px: np.ndarray, segments_n: np.ndarray, camera: Camera) -> list[Region]:

@@ -310,7 +310,7 @@ def align_to_lines(model: np.ndarray, image: np.ndarray, tolerances: tuple[float
     total = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     moved = model
     for tolerance in tolerances:
-        mi, ii = nearest_lines(moved, image, tolerance)
+        mi, ii, _ = nearest_lines(moved, image, tolerance)
         if len(mi) < 3:
             break
         lines = np.repeat(line_equations(image[ii]), 2, axis=0)

@@ -94,6 +94,7 @@ class LineMatches:
     image_2d: np.ndarray  # (K, 2, 2)
     model_index: np.ndarray  # (K,) into the candidate model segments
     image_index: np.ndarray  # (K,) into the image segments
+    distances: np.ndarray  # (K,) largest distance of the image end points to the model line
 
 
 def line_equations(segments: np.ndarray) -> np.ndarray:
@@ -111,21 +112,22 @@ def associate(model_3d: np.ndarray, R: np.ndarray, t: np.ndarray, image_2d: np.n
     Distances are in normalised image units (pixels / f); see ``nearest_lines``.
     """
     if len(model_3d) == 0 or len(image_2d) == 0:
-        return LineMatches(np.zeros((0, 2, 3)), np.zeros((0, 2, 2)), np.zeros(0, int), np.zeros(0, int))
-    mi, ii = nearest_lines(project(model_3d, R, t), image_2d, tolerance, max_angle_deg)
-    return LineMatches(model_3d[mi], image_2d[ii], mi, ii)
+        return LineMatches(np.zeros((0, 2, 3)), np.zeros((0, 2, 2)), np.zeros(0, int), np.zeros(0, int), np.zeros(0))
+    mi, ii, dist = nearest_lines(project(model_3d, R, t), image_2d, tolerance, max_angle_deg)
+    return LineMatches(model_3d[mi], image_2d[ii], mi, ii, dist)
 
 
 def nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, tolerance: float,
-                  max_angle_deg: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (model, image) pairing each model segment with its best image segment.
+                  max_angle_deg: float = 10.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Indices (model, image) pairing each model segment with its best image segment, and
+    the distance of each pair (largest distance of the image end points to the model line).
 
     A model segment keeps the image segment whose end points lie closest to the model's
     line, provided that is within ``tolerance``, the directions agree within
     ``max_angle_deg`` and the two overlap along the line.
     """
     if len(model_2d) == 0 or len(image_2d) == 0:
-        return np.zeros(0, int), np.zeros(0, int)
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
     m_dir = model_2d[:, 1] - model_2d[:, 0]
     m_len = np.linalg.norm(m_dir, axis=1)
     m_unit = m_dir / np.maximum(m_len, 1e-12)[:, None]
@@ -140,8 +142,9 @@ def nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, tolerance: float,
     valid = (cos > np.cos(np.radians(max_angle_deg))) & (perp < tolerance) & (overlap > 0) & (m_len > 1e-12)[:, None]
     cost = np.where(valid, perp, np.inf)
     best = np.argmin(cost, axis=1)
-    keep = np.isfinite(cost[np.arange(len(best)), best])
-    return np.nonzero(keep)[0], best[keep]
+    best_cost = cost[np.arange(len(best)), best]
+    keep = np.isfinite(best_cost)
+    return np.nonzero(keep)[0], best[keep], best_cost[keep]
 
 
 def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: float,
