@@ -46,7 +46,7 @@ class PoseParams:
     view_search_steps: int = doc("steps of the hill-climb over neighbouring aspect-graph views; 0 turns it off", 4)
     inlier_pixels: float = doc("distance of a projected model edge to an image edge still counted as found, pixels", 2.0)
     min_size_pixels: float = doc("smallest diagonal of the projected part, pixels; smaller poses score 0", 40.0)
-    min_score: float = doc("a pose with a lower score is reported as not found", 0.45)
+    min_score: float = doc("a pose with a lower score is reported as not found", 0.6)
     warn_error_ratio: float = doc("diagnostics turn WARN above this error ratio", 0.5)
 
 
