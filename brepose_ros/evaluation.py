@@ -130,7 +130,8 @@ class ImageResult:
     image: str
     estimate: object  # estimator.Estimate
     errors: PoseErrors | None  # None when nothing was found
-    view_rank: int  # rank of the matched view among the views nearest the truth (0 = nearest)
+    view_rank: int  # rank of the final pose's view among the views nearest the truth (0 = nearest)
+    matched_view_rank: int  # the same for the view the bipartite matching chose
 
 
 def evaluate_scene(scene, estimator, model: ModelPoints, on_image=None) -> list[ImageResult]:
@@ -148,9 +149,13 @@ def evaluate_scene(scene, estimator, model: ModelPoints, on_image=None) -> list[
         estimate = estimator.estimate(image, scene.camera)
         errors = pose_errors(estimate.R, estimate.t, entry.R, entry.t, model) if estimate.found else None
         direction = graph.model_center + entry.R.T @ entry.t  # model centre minus camera centre
-        order = nearest_views(graph.view_directions, direction, k=min(graph.n_views, 50))
-        hits = np.nonzero(order == estimate.matched_view)[0]
-        results.append(ImageResult(entry.image, estimate, errors, int(hits[0]) if len(hits) else 50))
+        order = list(nearest_views(graph.view_directions, direction, k=min(graph.n_views, 50)))
+
+        def rank(view):
+            return order.index(view) if view in order else len(order)
+
+        results.append(ImageResult(entry.image, estimate, errors, rank(estimate.view_index),
+                                   rank(estimate.matched_view)))
         if on_image is not None:
             on_image(image, results[-1])
     return results
@@ -161,6 +166,7 @@ def scene_summary(results: list[ImageResult]) -> dict:
     summary = summarise([r.errors for r in results])
     n = max(len(results), 1)
     summary["view_among_3_nearest"] = sum(r.view_rank < 3 for r in results) / n
+    summary["matched_view_among_3_nearest"] = sum(r.matched_view_rank < 3 for r in results) / n
     summary["median_time_ms"] = float(np.median([r.estimate.timings.get("total", 0.0) for r in results]) * 1000)
     return summary
 
