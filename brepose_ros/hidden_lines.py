@@ -337,9 +337,9 @@ def _pieces_2d(compound, same_point: float) -> np.ndarray:
     from OCP.BRep import BRep_Tool
     from OCP.TopExp import TopExp
 
-    ends = [(BRep_Tool.Pnt_s(TopExp.FirstVertex_s(e)), BRep_Tool.Pnt_s(TopExp.LastVertex_s(e)))
+    ends = [(BRep_Tool.Pnt_s(TopExp.FirstVertex_s(e)).Coord(), BRep_Tool.Pnt_s(TopExp.LastVertex_s(e)).Coord())
             for e in _edges(compound)]
-    pieces = np.array([[(a.X(), -a.Y()), (b.X(), -b.Y())] for a, b in ends]).reshape(-1, 2, 2)
+    pieces = np.array(ends).reshape(-1, 2, 3)[..., :2] * [1.0, -1.0]
     # Orient every piece the same way (by an arbitrary linear functional), then copies are
     # near-identical 4-vectors.
     forward = pieces[:, 0] @ [1.0, np.pi] <= pieces[:, 1] @ [1.0, np.pi]
@@ -393,23 +393,20 @@ def _chain(polylines: list[np.ndarray], same_point: float) -> list[np.ndarray]:
     polylines = [p for p in polylines if len(p) >= 2]
     if len(polylines) <= 1:
         return polylines
+    # End 2 * i is the first point of polyline i, 2 * i + 1 its last.
     ends = np.array([[p[0], p[-1]] for p in polylines]).reshape(-1, 3)
     pairs = cKDTree(ends).query_pairs(same_point, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(ends), len(ends)))
     _, node = connected_components(graph, directed=False)
-    members: dict[int, list[int]] = {}
-    for end, n in enumerate(node):
-        members.setdefault(n, []).append(end)
+    order = np.argsort(node, kind="stable")
+    first = np.searchsorted(node[order], node[order])
+    two = np.bincount(node)[node[order]] == 2
+    partner = np.full(len(ends), -1)
+    partner[order[two]] = order[np.where(first[two] == np.flatnonzero(two), first[two] + 1, first[two])]
+    partner[partner // 2 == np.arange(len(ends)) // 2] = -1  # a closed polyline meets itself
+    partner = partner.tolist()
 
-    def partner(end: int) -> int | None:
-        """The other polyline end at this end's point, if exactly two meet there."""
-        group = members[node[end]]
-        if len(group) != 2:
-            return None
-        other = group[0] if group[1] == end else group[1]
-        return other if other // 2 != end // 2 else None
-
-    used = np.zeros(len(polylines), dtype=bool)
+    used = [False] * len(polylines)
     chains = []
     for start in range(len(polylines)):
         if used[start]:
@@ -417,15 +414,15 @@ def _chain(polylines: list[np.ndarray], same_point: float) -> list[np.ndarray]:
         # Walk backwards to the chain's first polyline (or once round a closed loop);
         # `side` is the end (0 first point, 1 last) by which the walk enters `line`.
         line, side = start, 0
-        while (other := partner(2 * line + side)) is not None and other // 2 != start:
+        while (other := partner[2 * line + side]) >= 0 and other // 2 != start:
             line, side = other // 2, 1 - other % 2
         parts = []
         while True:
             used[line] = True
             piece = polylines[line] if side == 0 else polylines[line][::-1]
             parts.append(piece[1:] if parts else piece)
-            other = partner(2 * line + 1 - side)
-            if other is None or used[other // 2]:
+            other = partner[2 * line + 1 - side]
+            if other < 0 or used[other // 2]:
                 break
             line, side = other // 2, other % 2
         chains.append(np.concatenate(parts))
