@@ -199,8 +199,7 @@ class Estimator:
         clock = _lap(timings, "matching", clock)
         if not hypotheses:
             return not_found
-        frame = Frame(segments_px, segments_n, camera,
-                      pose.EdgeEvidence(canny_edges(gray, p.edges), gray, segments_px))
+        frame = Frame(segments_px, segments_n, camera, pose.EdgeEvidence(canny_edges(gray, p.edges), gray))
         candidates = sorted((self._verify(h, frame) for h in best_per_region(hypotheses, p.matching.hypotheses)),
                             key=lambda c: -c.score)
         best = max((self._climb(c, frame) for c in candidates[: p.pose.climb_candidates]), key=lambda c: c.score)

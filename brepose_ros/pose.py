@@ -203,17 +203,14 @@ class EdgeEvidence:
     * ``explained`` (image -> model): share of the edge pixels inside the projected part's
       convex outline, grown by ``OUTLINE_MARGIN``, lying within ``tolerance`` of a
       projected model edge. The margin is what stops a small pose that fits one inner
-      feature (a window of the part) from explaining everything it covers. Edge pixels of
-      image lines that run on well outside that outline are not counted: a line crossing
-      the part (the edge of an occluder or of clutter behind) is not the part's to explain.
+      feature (a window of the part) from explaining everything it covers.
     """
 
     BINS = 8
     OUTLINE_MARGIN = 0.2
 
-    def __init__(self, edge_map: np.ndarray, gray: np.ndarray, segments_px: np.ndarray | None = None):
+    def __init__(self, edge_map: np.ndarray, gray: np.ndarray):
         self.shape = edge_map.shape
-        self.segments = np.zeros((0, 2, 2)) if segments_px is None else np.asarray(segments_px, float)
         self.edges = edge_map > 0
         smooth = cv2.GaussianBlur(np.asarray(gray, np.float32), (5, 5), 0)
         dx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0)
@@ -265,7 +262,6 @@ class EdgeEvidence:
         outline = np.zeros((y1 - y0, x1 - x0), np.uint8)
         cv2.fillConvexPoly(outline, np.round(hull - offset).astype(np.int32), 1)
         inside = self.edges[y0:y1, x0:x1] & (outline > 0)
-        inside &= ~self._crossing_lines(outline, offset)
         if not inside.any():
             return 0.0
         canvas = np.full(outline.shape, 255, np.uint8)
@@ -273,20 +269,3 @@ class EdgeEvidence:
             cv2.line(canvas, (int(seg[0, 0]), int(seg[0, 1])), (int(seg[1, 0]), int(seg[1, 1])), 0, 1)
         near = cv2.distanceTransform(canvas, cv2.DIST_L2, 3) <= tolerance_px
         return float((near & inside).sum() / inside.sum())
-
-    def _crossing_lines(self, outline: np.ndarray, offset: np.ndarray) -> np.ndarray:
-        """Mask (in the outline's box) of the image lines that continue outside the outline."""
-        mask = np.zeros(outline.shape, np.uint8)
-        if len(self.segments) == 0:
-            return mask.astype(bool)
-        h, w = outline.shape
-        frac = np.linspace(0.0, 1.0, 7)
-        pts = self.segments[:, :1] + frac[None, :, None] * (self.segments[:, 1:] - self.segments[:, :1]) - offset
-        x, y = np.round(pts[..., 0]).astype(int), np.round(pts[..., 1]).astype(int)
-        in_box = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-        inside = np.zeros(x.shape, bool)
-        inside[in_box] = outline[y[in_box], x[in_box]] > 0
-        crossing = inside.any(axis=1) & ((~inside).sum(axis=1) >= 2)
-        for seg in np.round(self.segments[crossing] - offset).astype(np.int32):
-            cv2.line(mask, (int(seg[0, 0]), int(seg[0, 1])), (int(seg[1, 0]), int(seg[1, 1])), 1, 5)
-        return mask.astype(bool)
