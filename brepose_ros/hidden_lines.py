@@ -238,10 +238,11 @@ class _PartMesh:
             compounds.append((SMOOTH, result.Rg1LineVCompound()))
         pieces = [_pieces_2d(compound, same_point) for _, compound in compounds]
         kinds = np.concatenate([np.full(len(p), kind) for (kind, _), p in zip(compounds, pieces)])
-        pieces = np.concatenate(pieces)
-        lifted, found = _lift(pieces.reshape(-1, 2), candidates, rotation, tolerance)
-        found = found.reshape(-1, 2).all(axis=1)
-        return list(zip(lifted.reshape(-1, 2, 3)[found], kinds[found]))
+        # Consecutive pieces share their end points: lift each point once.
+        points, shared = np.unique(np.concatenate(pieces).reshape(-1, 2), axis=0, return_inverse=True)
+        lifted, found = _lift(points, candidates, rotation, tolerance)
+        lifted, found = lifted[shared.ravel()].reshape(-1, 2, 3), found[shared.ravel()].reshape(-1, 2).all(axis=1)
+        return list(zip(lifted[found], kinds[found]))
 
     def outline_segments(self, direction: np.ndarray) -> np.ndarray:
         """(M, 2, 3) outline of the curved faces' mesh: where the interpolated normal is
@@ -432,6 +433,8 @@ def _chain(polylines: list[np.ndarray], same_point: float) -> list[np.ndarray]:
 def _simplify(xy: np.ndarray, tolerance: float) -> np.ndarray:
     """Indices of the vertices Douglas-Peucker keeps of a 2D polyline (first and last
     always). A chord shorter than the tolerance (a closed loop) is measured from its start."""
+    if len(xy) <= 2:
+        return np.arange(len(xy))
     keep = np.zeros(len(xy), dtype=bool)
     keep[[0, -1]] = True
     stack = [(0, len(xy) - 1)]
