@@ -25,7 +25,7 @@ from . import matching, pose
 from .aspect_graph import AspectGraph
 from .camera import Camera
 from .geometry import rotation_between
-from .image_edges import canny_edges, extract_segments, to_gray
+from .image_edges import detect_edges
 from .metric_space import outline_normalisation as normalisation_of
 from .metric_space import segment_lengths
 from .params import EstimatorParams
@@ -185,8 +185,8 @@ class Estimator:
         if image.ndim < 2 or image.shape[0] != camera.height or image.shape[1] != camera.width:
             raise ValueError(f"image of shape {image.shape} does not fit the camera's "
                              f"{camera.width}x{camera.height}")
-        gray = to_gray(image)
-        segments_px = extract_segments(image, p.edges)
+        edges = detect_edges(image, p.edges)
+        segments_px = edges.segments
         clock = _lap(timings, "edges", clock)
         not_found = Estimate(False, None, None, 0.0, 1.0, -1, len(segments_px), 0, 0, timings=timings)
         if len(segments_px) < MIN_REGION_SEGMENTS:
@@ -199,7 +199,7 @@ class Estimator:
         clock = _lap(timings, "matching", clock)
         if not hypotheses:
             return not_found
-        frame = Frame(segments_px, segments_n, camera, pose.EdgeEvidence(canny_edges(gray, p.edges), gray))
+        frame = Frame(segments_px, segments_n, camera, pose.EdgeEvidence(edges.edge_map, edges.gray))
         candidates = sorted((self._verify(h, frame) for h in best_per_region(hypotheses, p.matching.hypotheses)),
                             key=lambda c: -c.score)
         best = max((self._climb(c, frame) for c in candidates[: p.pose.climb_candidates]), key=lambda c: c.score)

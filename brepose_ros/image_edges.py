@@ -88,26 +88,41 @@ class EdgeParams:
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
 
 
-def extract_segments(image: np.ndarray, params: EdgeParams = EdgeParams()) -> np.ndarray:
-    """Merged straight line segments (N, 2, 2) float64 of an image, longest first.
+@dataclass
+class ImageEdges:
+    """What the edge stage found in one image: the gray image, Canny's edge pixels and the
+    merged line segments (N, 2, 2), longest first. Later stages score poses on the pixels."""
+
+    gray: np.ndarray
+    edge_map: np.ndarray
+    segments: np.ndarray
+
+
+def detect_edges(image: np.ndarray, params: EdgeParams = EdgeParams()) -> ImageEdges:
+    """Canny edge pixels and merged straight line segments of an image.
 
     ``image`` is uint8 or uint16 (float is read on the uint8 scale), gray (H, W) or
     (H, W, 1), BGR or BGRA (H, W, 3|4); anything else, an empty image or NaN/inf raise
-    ValueError. A constant image has no edges and gives (0, 2, 2).
+    ValueError. A constant image has no edges and gives (0, 2, 2) segments.
     """
     gray = to_gray(image)
     if gray.max() == gray.min():
-        return np.zeros((0, 2, 2))
+        return ImageEdges(gray, np.zeros(gray.shape, np.uint8), np.zeros((0, 2, 2)))
+    edges = canny_edges(gray, params)
     if params.detector == "lsd":
         merged = merge_segments(lsd_segments(gray, params), params)
     else:
-        edges = canny_edges(gray, params)
         merged = merge_segments(hough_segments(edges, params), params)
         if params.refine:
             merged = merge_segments(refine_segments(merged, edges, params), params)
     lengths = np.linalg.norm(merged[:, 1] - merged[:, 0], axis=1)
     merged = merged[lengths >= params.min_length_fraction * float(np.hypot(*gray.shape))]
-    return merged[: params.max_segments]
+    return ImageEdges(gray, edges, merged[: params.max_segments])
+
+
+def extract_segments(image: np.ndarray, params: EdgeParams = EdgeParams()) -> np.ndarray:
+    """Merged straight line segments (N, 2, 2) float64 of an image, longest first."""
+    return detect_edges(image, params).segments
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
