@@ -62,6 +62,10 @@ _ARRAYS = {
 }
 
 
+_METADATA_KEYS = ("format_version", "step_sha256", "params", "units", "model_diameter", "n_faces", "arrays",
+                  "content_sha256")
+
+
 class AspectGraphError(ValueError):
     """An aspect graph that cannot be compiled or used, with the reason in the message."""
 
@@ -145,10 +149,11 @@ class AspectGraph:
         try:
             handle, tmp = tempfile.mkstemp(dir=path.parent, suffix=".part")
         except OSError as error:
-            raise AspectGraphError(f"cannot write {path}: {error}") from error
+            raise AspectGraphError(f"cannot write {path}: {error.strerror}") from error
         try:
             with os.fdopen(handle, "wb") as stream:
                 np.savez_compressed(stream, **entries)
+            os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide it from a node run by another user
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
@@ -231,6 +236,9 @@ def _read(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
     if not isinstance(metadata, dict) or metadata.get("format") != FORMAT:
         raise AspectGraphError(f"{path} is an npz file but not a {FORMAT} (metadata format "
                                f"{metadata.get('format') if isinstance(metadata, dict) else None!r})")
+    missing = [key for key in _METADATA_KEYS if key not in metadata]
+    if missing:
+        raise AspectGraphError(f"{path}: its metadata lacks {', '.join(missing)}")
     return metadata, arrays
 
 

@@ -199,6 +199,7 @@ def test_parallel_compile_gives_the_same_graph(sample_step, graph):
 
 def test_save_load_round_trip_is_identical(graph, sample_step, tmp_path):
     path = graph.save(tmp_path / "sample.brepose.npz")
+    assert path.stat().st_mode & 0o777 == 0o644
     loaded = AspectGraph.load(path, step_path=sample_step)
     for name, array in graph.arrays().items():
         assert array.dtype == getattr(loaded, name).dtype and np.array_equal(array, getattr(loaded, name)), name
@@ -235,7 +236,7 @@ def flip_byte_in_array(path, tmp_path):
 
 def rewritten(**changes):
     """A damage: rewrite the file (a valid zip again) with entries or metadata fields changed;
-    a change returning None removes the entry."""
+    a change returning None removes the entry or field."""
     def damage(path, tmp_path):
         with np.load(path, allow_pickle=False) as npz:
             entries = {name: npz[name] for name in npz.files}
@@ -246,7 +247,7 @@ def rewritten(**changes):
             else:
                 metadata[key] = change(metadata[key])
         entries = {name: a for name, a in entries.items() if a is not None}
-        entries["metadata"] = np.array(json.dumps(metadata))
+        entries["metadata"] = np.array(json.dumps({k: v for k, v in metadata.items() if v is not None}))
         with open(path, "wb") as stream:
             np.savez(stream, **entries)
         return path
@@ -262,10 +263,11 @@ def rewritten(**changes):
     (rewritten(params=lambda d: {**d, "chord_tolerance": 0.5}), "content digest mismatch"),
     (rewritten(format_version=lambda v: v + 1), "newer than this brepose_ros"),
     (rewritten(tetrads=lambda a: None), "lacks the array"),
+    (rewritten(step_sha256=lambda a: None), "metadata lacks step_sha256"),
     (rewritten(seg_kind=lambda a: a.astype(np.int64)), "array seg_kind has dtype int64"),
     (rewritten(norm_scales=lambda a: a[:-1]), "array norm_scales has dtype .* shape"),
 ], ids=["missing", "not-npz", "truncated", "flipped-byte", "array-edited", "metadata-edited", "newer-version",
-        "missing-array", "wrong-dtype", "wrong-shape"])
+        "missing-array", "missing-metadata", "wrong-dtype", "wrong-shape"])
 def test_damaged_files_are_refused_naming_the_cause(graph, tmp_path, damage, message):
     path = damage(graph.save(tmp_path / "sample.brepose.npz"), tmp_path)
     with pytest.raises(AspectGraphError, match=message):
