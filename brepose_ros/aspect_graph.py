@@ -244,8 +244,8 @@ def _read(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
 
 def _check_arrays(path: Path, metadata: dict, arrays: dict[str, np.ndarray]) -> None:
     """Every array has the dtype and shape of the contract, consistent with the others."""
-    n_views = len(arrays["view_directions"])
-    offsets = arrays["seg_offsets"]
+    directions, offsets = arrays["view_directions"], arrays["seg_offsets"]
+    n_views = directions.shape[0] if directions.ndim else -1
     n_segments = int(offsets[-1]) if offsets.ndim == 1 and len(offsets) else -1
     sizes = {"V": n_views, "V+1": n_views + 1, "S": n_segments}
     for name, (dtype, shape) in _ARRAYS.items():
