@@ -225,7 +225,7 @@ class _PartMesh:
         self.algo.Load(shape)
 
     def visible_polylines(self, rotation, include_smooth, tolerance, same_point):
-        """Visible pieces from HLRBRep_PolyAlgo, each located on its 3D source segment."""
+        """Visible pieces from HLRBRep_PolyAlgo with their end points lifted onto the model."""
         from OCP.HLRBRep import HLRBRep_PolyHLRToShape
 
         self.algo.Projector(_projector(rotation))
