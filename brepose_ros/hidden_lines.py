@@ -82,7 +82,7 @@ class HiddenLineRemover:
         self.chord = chord_tolerance * part.diameter
         self.min_length = min_length * part.diameter
         self.same_point = _SAME_POINT * part.diameter
-        self.shape = _solids(part.shape)
+        self.shape = part.shape
         self._mesh = _PartMesh(self.shape, self.chord / 2.0) if method == "poly" else None
 
     @staticmethod
@@ -121,23 +121,6 @@ class HiddenLineRemover:
         xy = view_coordinates(segments, rotation, self.part.center)
         long_enough = np.linalg.norm(xy[:, 1] - xy[:, 0], axis=1) >= self.min_length
         return ViewSegments(segments[long_enough], kinds[long_enough])
-
-
-def _solids(shape):
-    """A compound of the shape's solids: a camera sees no construction wires or lone
-    surfaces, which some STEP files carry beside the part."""
-    from OCP.BRep import BRep_Builder
-    from OCP.TopAbs import TopAbs_SOLID
-    from OCP.TopExp import TopExp_Explorer
-    from OCP.TopoDS import TopoDS_Compound
-
-    builder, compound = BRep_Builder(), TopoDS_Compound()
-    builder.MakeCompound(compound)
-    explorer = TopExp_Explorer(shape, TopAbs_SOLID)
-    while explorer.More():
-        builder.Add(compound, explorer.Current())
-        explorer.Next()
-    return compound
 
 
 def _projector(rotation: np.ndarray):
