@@ -55,3 +55,16 @@ def test_unusable_step_files_are_refused(tmp_path, builtin_step, make, message):
 def test_files_over_the_size_limit_are_refused_before_parsing(builtin_step):
     with pytest.raises(CadError, match="over the limit"):
         load_step(builtin_step("box"), max_bytes=1000)
+
+
+def test_construction_edges_beside_the_solid_do_not_count(tmp_path):
+    """A far-away wire in the file (NIST CTC-01 has 78) must not grow the part's size."""
+    import cadquery as cq
+
+    box = cq.Workplane("XY").box(40, 20, 10).val()
+    wire = cq.Edge.makeLine(cq.Vector(0, 0, 0), cq.Vector(500, 0, 0))
+    path = tmp_path / "with_wire.step"
+    cq.exporters.export(cq.Workplane("XY").add(cq.Compound.makeCompound([box, wire])), str(path), exportType="STEP")
+    part = load_step(path)
+    assert part.diameter == pytest.approx(np.linalg.norm([0.040, 0.020, 0.010]), rel=1e-3)
+    assert np.allclose(part.center, 0.0, atol=1e-6)
