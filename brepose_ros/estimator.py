@@ -9,9 +9,11 @@
       --pose--> first metric pose per hypothesis --refine--> refined poses, scored on edge pixels
       --hill-climb over neighbouring views--> best pose; found if its score passes pose.min_score
 
-The views of one image are spread over worker threads in batches (Kuhn-Munkres and most
-numpy kernels release the GIL; one batch per thread, not one task per view, since each
-solve is ~0.1 ms).
+The (region, view) jobs of one image can be spread over ``matching.workers`` threads, one
+batch per thread. Measured (bench/latency.py), 2 threads are slower than 1: each job is
+dozens of small numpy calls that hold the GIL, and Kuhn-Munkres, which releases it, is about
+1 % of the time; so the default is 1, and real parallelism will need vectorising the jobs
+across views or processes.
 """
 from __future__ import annotations
 
