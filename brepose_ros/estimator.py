@@ -26,7 +26,7 @@ import numpy as np
 from . import matching, pose
 from .aspect_graph import AspectGraph
 from .camera import Camera
-from .geometry import rotation_between
+from .geometry import direction_to, rotation_between
 from .image_edges import detect_edges
 from .metric_space import outline_normalisation as normalisation_of
 from .metric_space import segment_lengths
@@ -83,7 +83,6 @@ class Hypothesis:
     scale: float
     phi: float
     shift: np.ndarray
-    assignment: matching.Assignment
     coverage: float  # F-measure of the two-way edge coverage after alignment
 
 
@@ -268,14 +267,14 @@ class Estimator:
         similarity = matching.similarity_from_pairs(model, region.features, best, phi)
         if similarity is None:
             return None
-        moved = _apply_similarity(model.segments, *similarity)
+        moved = matching.apply_similarity(model.segments, *similarity)
         # re-match with the similarity applied: the pairs now say what is really aligned
         refined = matching.assign(matching.describe(moved), region.features, 0.0, p)
         if refined.cost < best.cost:
             better = matching.similarity_from_pairs(model, region.features, refined, similarity[1])
             if better is not None:
                 best, similarity = refined, better
-                moved = _apply_similarity(model.segments, *similarity)
+                moved = matching.apply_similarity(model.segments, *similarity)
         tolerance = p.coverage_tolerance
         moved, polish = matching.align_to_lines(moved, region.features.segments,
                                                 (3 * tolerance, tolerance))
@@ -292,7 +291,7 @@ class Estimator:
         scale = region.scale * a / norm_v.scale
         rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
         shift = region.center + region.scale * b - scale * rot @ norm_v.center
-        return Hypothesis(region, view, scale, angle, shift, best, f_measure)
+        return Hypothesis(region, view, scale, angle, shift, f_measure)
 
     def _verify(self, hyp: Hypothesis, frame: "Frame") -> "Candidate":
         """The first pose of a hypothesis, refined against the image lines, and its score."""
@@ -364,8 +363,7 @@ class Estimator:
     def _nearest_view(self, R: np.ndarray, t: np.ndarray) -> int:
         """The graph view nearest to the direction the camera sees the part from."""
         g = self.graph
-        direction = g.model_center + R.T @ t  # model centre minus camera centre (-R^T t)
-        return int(np.argmax(g.view_directions @ (direction / np.linalg.norm(direction))))
+        return int(np.argmax(g.view_directions @ direction_to(g.model_center, R, t)))
 
     def _visible_segments(self, R: np.ndarray, t: np.ndarray) -> slice:
         """Segments visible from the graph view nearest to the pose's viewing direction."""
@@ -431,11 +429,6 @@ def cluster_segments(segments_px: np.ndarray, gap: float) -> list[np.ndarray]:
     order = np.argsort(-totals)
     keep = [groups[i] for i in order if totals[i] >= 0.1 * totals[order[0]]]
     return keep if len(keep) > 1 else []  # one cluster is the whole image again
-
-
-def _apply_similarity(segments: np.ndarray, scale: float, angle: float, shift: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return scale * segments @ np.array([[c, s], [-s, c]]) + shift
 
 
 def _lap(timings: dict, name: str, start: float) -> float:

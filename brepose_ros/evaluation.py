@@ -5,10 +5,12 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from .geometry import rotation_angle_deg
+from .geometry import direction_to, rotation_angle_deg
+from .viewsphere import nearest_views
 
 
 def viewing_direction(R: np.ndarray) -> np.ndarray:
@@ -136,10 +138,6 @@ class ImageResult:
 
 def evaluate_scene(scene, estimator, model: ModelPoints, on_image=None) -> list[ImageResult]:
     """Run ``estimator`` over a loaded scene (``scenes.load_scene``) and measure every image."""
-    import cv2
-
-    from .viewsphere import nearest_views
-
     graph = estimator.graph
     results = []
     for entry in scene.entries:
@@ -148,7 +146,7 @@ def evaluate_scene(scene, estimator, model: ModelPoints, on_image=None) -> list[
             raise ValueError(f"cannot read image {entry.path}")
         estimate = estimator.estimate(image, scene.camera)
         errors = pose_errors(estimate.R, estimate.t, entry.R, entry.t, model) if estimate.found else None
-        direction = graph.model_center + entry.R.T @ entry.t  # model centre minus camera centre
+        direction = direction_to(graph.model_center, entry.R, entry.t)
         order = list(nearest_views(graph.view_directions, direction, k=min(graph.n_views, 50)))
 
         def rank(view):

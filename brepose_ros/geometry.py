@@ -39,6 +39,12 @@ def look_at_rotation(view_direction: np.ndarray, up: np.ndarray | None = None) -
     return np.stack([x, y, z])
 
 
+def direction_to(point: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Unit direction, in the model frame, from the camera of pose (R, t) to a model point:
+    the direction the camera sees that point from (camera centre is -R^T t)."""
+    return normalize(np.asarray(point) + np.asarray(R).T @ np.asarray(t))
+
+
 def rot_z(angle: float) -> np.ndarray:
     """Rotation about the camera's optical axis: an in-plane rotation of the image."""
     c, s = np.cos(angle), np.sin(angle)

@@ -36,11 +36,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from .metric_space import segment_lengths
 from .params import MatchParams
+from .pose import line_equations, nearest_lines
 
 ORIENTATION_BINS = 72  # 2.5 degree bins over [0, pi)
 
@@ -168,8 +170,7 @@ def similarity_from_pairs(model: SegmentFeatures, image: SegmentFeatures, assign
         return None
     src = model.segments[assignment.model_index[keep]]
     dst = image.segments[assignment.image_index[keep]]
-    c, s = np.cos(phi), np.sin(phi)
-    turned = src @ np.array([[c, s], [-s, c]])
+    turned = apply_similarity(src, 1.0, phi, np.zeros(2))
     straight = np.sum((turned - dst) ** 2, axis=(1, 2))
     swapped = np.sum((turned - dst[:, ::-1]) ** 2, axis=(1, 2))
     dst = np.where((swapped < straight)[:, None, None], dst[:, ::-1], dst)
@@ -177,6 +178,12 @@ def similarity_from_pairs(model: SegmentFeatures, image: SegmentFeatures, assign
                                    image.lengths[assignment.image_index[keep]]), 2)
     src, dst = src.reshape(-1, 2), dst.reshape(-1, 2)
     return weighted_similarity(src, dst, weights)
+
+
+def apply_similarity(segments: np.ndarray, scale: float, angle: float, shift: np.ndarray) -> np.ndarray:
+    """Points or segments (..., 2) mapped by scale * R(angle) x + shift."""
+    c, s = np.cos(angle), np.sin(angle)
+    return scale * np.asarray(segments) @ np.array([[c, s], [-s, c]]) + shift
 
 
 def weighted_similarity(src: np.ndarray, dst: np.ndarray, weights: np.ndarray):
@@ -256,8 +263,6 @@ class ChamferPrefilter:
         self.orientations = np.stack(ori).astype(np.float32)  # (V, P) modulo pi
 
     def distance_maps(self, region: SegmentFeatures) -> np.ndarray:
-        import cv2
-
         cell = 2.0 * self.EXTENT / self.GRID
         maps = np.empty((self.ORIENT_BINS, self.GRID, self.GRID), np.float32)
         bins = (region.orientations / np.pi * self.ORIENT_BINS).astype(int) % self.ORIENT_BINS
@@ -305,8 +310,6 @@ def align_to_lines(model: np.ndarray, image: np.ndarray, tolerances: tuple[float
     the distance of x' to a line: each round is one 4x4 least-squares solve. Returns the
     moved model segments and the 2x3 similarity matrix applied to them.
     """
-    from .pose import line_equations, nearest_lines
-
     total = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     moved = model
     for tolerance in tolerances:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 TETRAD_FIELDS = ("length", "alpha", "theta", "r")
@@ -98,8 +99,6 @@ def outline_normalisation(segments: np.ndarray) -> Normalisation:
     while inner edges come and go with lighting; so this normalisation agrees between a
     view and an image that misses some inner edges, where the length-weighted one drifts.
     """
-    import cv2
-
     pts = np.asarray(segments, dtype=np.float64).reshape(-1, 2)
     if len(pts) < 3:
         raise ValueError("cannot normalise fewer than two segments")
