@@ -21,10 +21,10 @@ image lines, with a tolerance that shrinks round by round.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .camera import Camera
 from .geometry import rot_z, rotation_between
@@ -99,10 +99,13 @@ class LineMatches:
 
 def line_equations(segments: np.ndarray) -> np.ndarray:
     """(K, 3) lines a x + b y + c = 0 with (a, b) a unit normal."""
-    a, b = segments[:, 0], segments[:, 1]
-    d = b - a
-    n = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
-    return np.concatenate([n, -np.sum(n * a, axis=1, keepdims=True)], axis=1)
+    start = segments[:, 0]
+    dx, dy = segments[:, 1, 0] - start[:, 0], segments[:, 1, 1] - start[:, 1]
+    length = np.maximum(np.sqrt(dx * dx + dy * dy), 1e-12)
+    lines = np.empty((len(segments), 3))
+    lines[:, 0], lines[:, 1] = -dy / length, dx / length
+    lines[:, 2] = -(lines[:, 0] * start[:, 0] + lines[:, 1] * start[:, 1])
+    return lines
 
 
 def associate(model_3d: np.ndarray, R: np.ndarray, t: np.ndarray, image_2d: np.ndarray,
@@ -128,21 +131,26 @@ def nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, tolerance: float,
     """
     if len(model_2d) == 0 or len(image_2d) == 0:
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    n_model, n_image = len(model_2d), len(image_2d)
     m_dir = model_2d[:, 1] - model_2d[:, 0]
-    m_len = np.linalg.norm(m_dir, axis=1)
+    m_len = np.hypot(m_dir[:, 0], m_dir[:, 1])
     m_unit = m_dir / np.maximum(m_len, 1e-12)[:, None]
     i_dir = image_2d[:, 1] - image_2d[:, 0]
-    i_unit = i_dir / np.maximum(np.linalg.norm(i_dir, axis=1), 1e-12)[:, None]
+    i_unit = i_dir / np.maximum(np.hypot(i_dir[:, 0], i_dir[:, 1]), 1e-12)[:, None]
     cos = np.abs(m_unit @ i_unit.T)
-    normal = np.stack([-m_unit[:, 1], m_unit[:, 0]], axis=1)
-    rel = image_2d[None, :, :, :] - model_2d[:, None, 0:1, :]  # (M, N, 2, 2)
-    perp = np.abs(np.einsum("mnkd,md->mnk", rel, normal)).max(axis=2)
-    along = np.einsum("mnkd,md->mnk", rel, m_unit)
-    overlap = np.minimum(along.max(axis=2), m_len[:, None]) - np.maximum(along.min(axis=2), 0.0)
-    valid = (cos > np.cos(np.radians(max_angle_deg))) & (perp < tolerance) & (overlap > 0) & (m_len > 1e-12)[:, None]
+    # image end points in every model segment's frame (along its direction, along its
+    # normal) by one matmul: columns are all first end points, then all second ones
+    axes = np.concatenate([m_unit, m_unit[:, ::-1] * [-1.0, 1.0]])  # (2M, 2)
+    origins = (axes.reshape(2, n_model, 2) * model_2d[:, 0]).sum(axis=2).reshape(-1, 1)
+    coords = axes @ image_2d.transpose(2, 1, 0).reshape(2, -1) - origins
+    along, normal = coords[:n_model], coords[n_model:]
+    perp = np.maximum(np.abs(normal[:, :n_image]), np.abs(normal[:, n_image:]))
+    overlaps = (np.minimum(np.maximum(along[:, :n_image], along[:, n_image:]), m_len[:, None])
+                > np.maximum(np.minimum(along[:, :n_image], along[:, n_image:]), 0.0))
+    valid = (cos > np.cos(np.radians(max_angle_deg))) & (perp < tolerance) & overlaps & (m_len > 1e-12)[:, None]
     cost = np.where(valid, perp, np.inf)
     best = np.argmin(cost, axis=1)
-    best_cost = cost[np.arange(len(best)), best]
+    best_cost = cost[np.arange(n_model), best]
     keep = np.isfinite(best_cost)
     return np.nonzero(keep)[0], best[keep], best_cost[keep]
 
@@ -154,39 +162,45 @@ def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: flo
     Iteratively reweighted least squares with Huber weights (``f_scale`` is the Huber
     threshold), an analytic Jacobian and the update R <- exp(w) R, t <- t + dt: six
     unknowns, so each step is a 6x6 solve; far cheaper than a generic solver with numeric
-    derivatives, which dominated the run time.
+    derivatives, which dominated the run time. It runs hundreds of times per image on
+    about a hundred points, so numpy's per-call overhead is the cost: arrays are laid out
+    one row per coordinate, the cross product is written out, and the 6x6 solve and the
+    rotation go to OpenCV (np.cross, np.linalg.solve and scipy's Rotation took most of
+    the time).
     """
     if len(matches.model_3d) < 3:
         return R, t
     lines = line_equations(matches.image_2d)  # (K, 3)
-    normals = np.repeat(lines[:, :2], 2, axis=0)
-    offsets = np.repeat(lines[:, 2], 2)
-    points = matches.model_3d.reshape(-1, 3)
+    nx, ny, offsets = np.repeat(lines, 2, axis=0).T
+    points = matches.model_3d.reshape(-1, 3).T  # (3, N)
+    jac = np.empty((6, points.shape[1]))  # d residual / d (w, dt), one column per end point
     for _ in range(iterations):
-        rotated = points @ R.T
-        cam = rotated + t
-        z = np.maximum(cam[:, 2], 1e-9)
-        u, v = cam[:, 0] / z, cam[:, 1] / z
-        residual = normals[:, 0] * u + normals[:, 1] * v + offsets
-        # d residual / d X_cam, then chain through X_cam = exp(w) R X + t
-        g = np.stack([normals[:, 0] / z, normals[:, 1] / z,
-                      -(normals[:, 0] * u + normals[:, 1] * v) / z], axis=1)
-        jac_rot = np.cross(rotated, g)  # g . (w x RX) = w . (RX x g)
-        jac = np.concatenate([jac_rot, g], axis=1)
-        weight = np.minimum(1.0, f_scale / np.maximum(np.abs(residual), 1e-12))
-        hessian = (jac * weight[:, None]).T @ jac
-        hessian += 1e-6 * np.trace(hessian) / 6.0 * np.eye(6)  # damping: degenerate line sets
-        try:
-            step = -np.linalg.solve(hessian, (jac * weight[:, None]).T @ residual)
-        except np.linalg.LinAlgError:
+        rotated = R @ points
+        x, y, z = rotated + t[:, None]
+        z = np.maximum(z, 1e-9)
+        along_normal = nx * (x / z) + ny * (y / z)
+        residual = along_normal + offsets
+        # d residual / d X_cam = g, then chain through X_cam = exp(w) R X + t:
+        # g . (w x RX) = w . (RX x g)
+        g = jac[3:]
+        g[0], g[1], g[2] = nx / z, ny / z, -along_normal / z
+        jac[:3] = rotated[_NEXT] * g[_AFTER] - rotated[_AFTER] * g[_NEXT]
+        weighted = jac * (f_scale / np.maximum(np.abs(residual), f_scale))  # Huber: 1 within f_scale
+        hessian = weighted @ jac.T
+        hessian += 1e-6 * hessian.trace() / 6.0 * _EYE6  # damping: degenerate line sets
+        solved, step = cv2.solve(hessian, -(weighted @ residual), flags=cv2.DECOMP_CHOLESKY)
+        step = step[:, 0]
+        if not solved or not np.isfinite(step).all():
             break
-        if not np.all(np.isfinite(step)):
-            break
-        R = Rotation.from_rotvec(step[:3]).as_matrix() @ R
+        R = cv2.Rodrigues(step[:3])[0] @ R
         t = t + step[3:]
-        if np.linalg.norm(step) < 1e-7:
+        if step @ step < 1e-14:
             break
     return R, t
+
+
+_NEXT, _AFTER = [1, 2, 0], [2, 0, 1]  # a x b = a[_NEXT] b[_AFTER] - a[_AFTER] b[_NEXT]
+_EYE6 = np.eye(6)
 
 
 class EdgeEvidence:
@@ -198,12 +212,21 @@ class EdgeEvidence:
     above every wrongly chosen one, where the segment-based score did not).
 
     * ``support`` (model -> image): share of the projected model edge length within
-      ``tolerance`` of an edge pixel of like direction (oriented chamfer: one distance map
-      per direction bin, each model point looks up its bin and the two next to it).
+      ``tolerance`` of an edge pixel of like direction (oriented chamfer: each model point
+      looks up the distance to the nearest edge pixel in its direction bin or the two next
+      to it).
     * ``explained`` (image -> model): share of the edge pixels inside the projected part's
       convex outline, grown by ``OUTLINE_MARGIN``, lying within ``tolerance`` of a
       projected model edge. The margin is what stops a small pose that fits one inner
       feature (a window of the part) from explaining everything it covers.
+
+    Both run hundreds of times per image and only ask whether a distance is within
+    ``tolerance``, so neither computes distances: with OpenCV's 3x3 chamfer distance
+    (``cv2.distanceTransform(..., DIST_L2, 3)``, an exact shortest path in integer steps)
+    "within r of a set" is the set dilated by the chamfer ball of radius r
+    (``chamfer_ball``), several times cheaper than the transform. ``support`` dilates,
+    once per tolerance, the edge pixels of each direction bin together with the two next
+    to it, so that a model point needs one look-up.
     """
 
     BINS = 8
@@ -212,14 +235,17 @@ class EdgeEvidence:
     def __init__(self, edge_map: np.ndarray, gray: np.ndarray):
         self.shape = edge_map.shape
         self.edges = edge_map > 0
+        rows, cols = np.nonzero(self.edges)
         smooth = cv2.GaussianBlur(np.asarray(gray, np.float32), (5, 5), 0)
-        dx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0)
-        dy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1)
+        dx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0)[rows, cols]
+        dy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1)[rows, cols]
         direction = np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi)  # edge runs across the gradient
         bins = (direction / np.pi * self.BINS).astype(int) % self.BINS
-        self.maps = np.stack([
-            cv2.distanceTransform(np.where(self.edges & (bins == b), 0, 255).astype(np.uint8), cv2.DIST_L2, 3)
-            for b in range(self.BINS)])
+        #: per direction bin b, the edge pixels of bins b - 1, b and b + 1
+        self.like_edges = np.zeros((self.BINS,) + self.shape, np.uint8)
+        for step in (-1, 0, 1):
+            self.like_edges[(bins + step) % self.BINS, rows, cols] = 1
+        self._near_like = {}  # tolerance -> like_edges dilated by its chamfer ball
 
     def orientation_bin(self, segments: np.ndarray) -> np.ndarray:
         d = segments[:, 1] - segments[:, 0]
@@ -228,6 +254,9 @@ class EdgeEvidence:
     def support(self, model_px: np.ndarray, tolerance_px: float) -> float:
         if len(model_px) == 0:
             return 0.0
+        if tolerance_px not in self._near_like:
+            ball = chamfer_ball(tolerance_px)
+            self._near_like[tolerance_px] = np.stack([cv2.dilate(m, ball) for m in self.like_edges]) > 0
         h, w = self.shape
         lengths = np.linalg.norm(model_px[:, 1] - model_px[:, 0], axis=1)
         counts = np.clip(np.ceil(lengths / 2.0).astype(int), 1, 2000)
@@ -238,11 +267,10 @@ class EdgeEvidence:
         weight = (lengths / counts)[seg_idx]
         x, y = np.round(pts[:, 0]).astype(int), np.round(pts[:, 1]).astype(int)
         inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-        own = self.orientation_bin(model_px)[seg_idx][inside]
-        xi, yi = x[inside], y[inside]
-        dist = np.full(len(pts), np.inf)
-        dist[inside] = np.min([self.maps[(own + step) % self.BINS, yi, xi] for step in (-1, 0, 1)], axis=0)
-        return float(weight[dist <= tolerance_px].sum() / max(weight.sum(), 1e-12))
+        near = np.zeros(len(pts), bool)
+        near[inside] = self._near_like[tolerance_px][self.orientation_bin(model_px)[seg_idx][inside],
+                                                     y[inside], x[inside]]
+        return float(weight[near].sum() / max(weight.sum(), 1e-12))
 
     def explained(self, model_px: np.ndarray, tolerance_px: float) -> float:
         if len(model_px) == 0:
@@ -264,8 +292,23 @@ class EdgeEvidence:
         inside = self.edges[y0:y1, x0:x1] & (outline > 0)
         if not inside.any():
             return 0.0
-        canvas = np.full(outline.shape, 255, np.uint8)
-        for seg in np.round(pts.reshape(-1, 2, 2) - offset).astype(np.int32):
-            cv2.line(canvas, (int(seg[0, 0]), int(seg[0, 1])), (int(seg[1, 0]), int(seg[1, 1])), 0, 1)
-        near = cv2.distanceTransform(canvas, cv2.DIST_L2, 3) <= tolerance_px
+        drawn = np.zeros(outline.shape, np.uint8)
+        cv2.polylines(drawn, list(np.round(pts.reshape(-1, 2, 2) - offset).astype(np.int32)), False, 1, 1)
+        near = cv2.dilate(drawn, chamfer_ball(tolerance_px)) > 0
         return float((near & inside).sum() / inside.sum())
+
+
+@lru_cache(maxsize=16)
+def chamfer_ball(radius: float) -> np.ndarray:
+    """Structuring element of the offsets within ``radius`` (>= 0) of the centre by
+    OpenCV's 3x3 L2 chamfer distance.
+
+    That distance is a shortest path of axial and diagonal steps (both at least 0.95
+    pixels), so a pixel's distance transform is the smallest chamfer norm of its offset
+    to any set pixel, and ``distanceTransform(...) <= radius`` is exactly the set dilated
+    by this ball. The ball comes from the same transform, so the two agree to the bit.
+    """
+    half = int(radius / 0.95) + 1
+    canvas = np.full((2 * half + 1, 2 * half + 1), 255, np.uint8)
+    canvas[half, half] = 0
+    return (cv2.distanceTransform(canvas, cv2.DIST_L2, 3) <= radius).astype(np.uint8)

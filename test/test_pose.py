@@ -1,0 +1,139 @@
+"""Pose refinement, line association and edge evidence against plain reference versions:
+the fast code paths must give the same answers as the straightforward definitions."""
+import cv2
+import numpy as np
+import pytest
+
+from brepose_ros import pose
+from brepose_ros.geometry import rot_z
+
+
+def random_segments(rng, n, scale=1.0):
+    return rng.uniform(-1, 1, size=(n, 2, 2)) * scale
+
+
+def test_refine_pose_recovers_the_pose_from_exact_line_matches():
+    rng = np.random.default_rng(0)
+    model_3d = rng.uniform(-0.05, 0.05, size=(12, 2, 3))
+    R_true = rot_z(0.4) @ cv2.Rodrigues(np.array([0.3, -0.2, 0.1]))[0]
+    t_true = np.array([0.01, -0.02, 0.5])
+    image_2d = pose.project(model_3d, R_true, t_true)
+    # image lines are longer than the projected edges: only the lines matter
+    image_2d = image_2d + np.array([-0.3, 0.3])[None, :, None] * (image_2d[:, 1:] - image_2d[:, :1])
+    matches = pose.LineMatches(model_3d, image_2d, np.arange(12), np.arange(12), np.zeros(12))
+    R0 = cv2.Rodrigues(np.array([0.03, 0.02, -0.02]))[0] @ R_true
+    R, t = pose.refine_pose(R0, t_true + [0.005, -0.003, 0.02], matches, f_scale=0.01, iterations=30)
+    assert np.abs(R - R_true).max() < 1e-8
+    assert np.abs(t - t_true).max() < 1e-8
+
+
+def reference_nearest_lines(model_2d, image_2d, tolerance, max_angle_deg=10.0):
+    """nearest_lines written pair by pair."""
+    mi, ii, dist = [], [], []
+    for m, (a, b) in enumerate(model_2d):
+        length = np.linalg.norm(b - a)
+        if length <= 1e-12:
+            continue
+        unit = (b - a) / length
+        normal = np.array([-unit[1], unit[0]])
+        best, best_cost = -1, np.inf
+        for i, seg in enumerate(image_2d):
+            d = seg[1] - seg[0]
+            cos = abs(unit @ d) / max(np.linalg.norm(d), 1e-12)
+            perp = np.abs((seg - a) @ normal).max()
+            along = (seg - a) @ unit
+            overlap = min(along.max(), length) - max(along.min(), 0.0)
+            if cos > np.cos(np.radians(max_angle_deg)) and perp < tolerance and overlap > 0 and perp < best_cost:
+                best, best_cost = i, perp
+        if best >= 0:
+            mi.append(m), ii.append(best), dist.append(best_cost)
+    return np.array(mi, int), np.array(ii, int), np.array(dist)
+
+
+def test_nearest_lines_matches_the_pairwise_definition():
+    rng = np.random.default_rng(1)
+    model = random_segments(rng, 30)
+    # image: noisy, shifted, partly cut copies of most model segments plus clutter
+    copies = model[:24] + rng.normal(0, 0.01, size=(24, 2, 2))
+    copies[::3] = copies[::3, :, :] * [1.0, 0.9]
+    image = np.concatenate([copies, random_segments(rng, 15)])[rng.permutation(39)]
+    model[5, 1] = model[5, 0]  # a degenerate model segment matches nothing
+    got = pose.nearest_lines(model, image, 0.05)
+    want = reference_nearest_lines(model, image, 0.05)
+    assert len(want[0]) > 15
+    for g, w in zip(got, want):
+        assert np.allclose(g, w, rtol=0, atol=1e-12)
+
+
+def test_chamfer_ball_dilation_is_the_thresholded_distance_transform():
+    rng = np.random.default_rng(2)
+    for radius in (0.0, 0.5, 1.0, 1.4, 2.0, 2.5, 3.0, 4.7, 9.0):
+        edges = (rng.random((60, 80)) < 0.01).astype(np.uint8)
+        dist = cv2.distanceTransform(np.where(edges > 0, 0, 255).astype(np.uint8), cv2.DIST_L2, 3)
+        assert np.array_equal(cv2.dilate(edges, pose.chamfer_ball(radius)) > 0, dist <= radius)
+
+
+@pytest.fixture(scope="module")
+def evidence_image():
+    """A grey image with a few shapes, its Canny edges and projected model segments near them."""
+    rng = np.random.default_rng(3)
+    gray = np.full((240, 320), 40, np.uint8)
+    cv2.rectangle(gray, (60, 50), (200, 170), 200, -1)
+    cv2.circle(gray, (250, 120), 40, 120, -1)
+    cv2.line(gray, (10, 220), (300, 190), 255, 3)
+    edge_map = cv2.Canny(gray, 50, 150)
+    corners = np.array([[60, 50], [200, 50], [200, 170], [60, 170]], float)
+    square = np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)
+    models = [square + rng.normal(0, s, size=square.shape) for s in (0.0, 1.0, 2.5, 6.0)]
+    models.append(np.concatenate([square, random_segments(rng, 6, 150) + [160, 120]]))
+    models.append(square * 0.5 + [190, 90])  # small, over the circle
+    models.append(square + [150, 20])  # partly outside the image
+    return edge_map, gray, models
+
+
+def reference_support(edge_map, gray, model_px, tolerance):
+    """support as first written: one distance map per direction bin, three look-ups."""
+    ev = pose.EdgeEvidence(edge_map, gray)
+    smooth = cv2.GaussianBlur(gray.astype(np.float32), (5, 5), 0)
+    direction = np.mod(np.arctan2(cv2.Sobel(smooth, cv2.CV_32F, 0, 1), cv2.Sobel(smooth, cv2.CV_32F, 1, 0)) + np.pi / 2, np.pi)
+    bins = (direction / np.pi * ev.BINS).astype(int) % ev.BINS
+    maps = np.stack([cv2.distanceTransform(np.where((edge_map > 0) & (bins == b), 0, 255).astype(np.uint8), cv2.DIST_L2, 3)
+                     for b in range(ev.BINS)])
+    h, w = edge_map.shape
+    total = near = 0.0
+    for seg, own in zip(model_px, ev.orientation_bin(model_px)):
+        length = np.linalg.norm(seg[1] - seg[0])
+        count = int(np.clip(np.ceil(length / 2.0), 1, 2000))
+        for k in range(count):
+            x, y = np.round(seg[0] + (k + 0.5) / count * (seg[1] - seg[0])).astype(int)
+            total += length / count
+            if 0 <= x < w and 0 <= y < h and min(maps[(own + s) % ev.BINS, y, x] for s in (-1, 0, 1)) <= tolerance:
+                near += length / count
+    return near / total
+
+
+def reference_explained(edge_map, model_px, tolerance):
+    """explained without the bounding-box crop: the whole image, a distance transform."""
+    h, w = edge_map.shape
+    pts = np.clip(model_px.reshape(-1, 2), -4.0 * max(h, w), 5.0 * max(h, w))
+    hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2)
+    hull = hull.mean(axis=0) + (1.0 + pose.EdgeEvidence.OUTLINE_MARGIN) * (hull - hull.mean(axis=0))
+    outline = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(outline, np.round(hull).astype(np.int32), 1)
+    inside = (edge_map > 0) & (outline > 0)
+    canvas = np.full((h, w), 255, np.uint8)
+    for (x0, y0), (x1, y1) in np.round(pts.reshape(-1, 2, 2)).astype(int):
+        cv2.line(canvas, (int(x0), int(y0)), (int(x1), int(y1)), 0, 1)
+    near = cv2.distanceTransform(canvas, cv2.DIST_L2, 3) <= tolerance
+    return (near & inside).sum() / max(inside.sum(), 1)
+
+
+@pytest.mark.parametrize("tolerance", [1.0, 2.0, 3.5])
+def test_edge_evidence_matches_the_distance_transform_definitions(evidence_image, tolerance):
+    edge_map, gray, models = evidence_image
+    evidence = pose.EdgeEvidence(edge_map, gray)
+    for model_px in models:
+        assert evidence.support(model_px, tolerance) == pytest.approx(
+            reference_support(edge_map, gray, model_px, tolerance), abs=1e-12)
+        assert evidence.explained(model_px, tolerance) == pytest.approx(
+            reference_explained(edge_map, model_px, tolerance), abs=1e-12)
