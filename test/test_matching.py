@@ -97,3 +97,54 @@ def test_weighted_similarity_is_exact_on_clean_points():
     assert scale == pytest.approx(2.5)
     assert angle == pytest.approx(-0.4)
     assert np.allclose(shift, [1.0, 2.0])
+
+
+def reference_coverage(source, target, tolerance, max_angle_deg=12.0, per_segment=4):
+    """coverage written point by point."""
+    covered = total = 0.0
+    for a, b in source:
+        for k in range(per_segment):
+            point = a + (k + 0.5) / per_segment * (b - a)
+            best = np.inf
+            for c, d in target:
+                cos = abs((b - a) @ (d - c)) / max(np.linalg.norm(b - a) * np.linalg.norm(d - c), 1e-18)
+                u = np.clip((point - c) @ (d - c) / max((d - c) @ (d - c), 1e-18), 0.0, 1.0)
+                if cos > np.cos(np.radians(max_angle_deg)):
+                    best = min(best, np.linalg.norm(point - (c + u * (d - c))))
+            total += np.linalg.norm(b - a) / per_segment
+            covered += np.linalg.norm(b - a) / per_segment if best < tolerance else 0.0
+    return covered / total
+
+
+def test_coverage_matches_the_pointwise_definition():
+    rng = np.random.default_rng(7)
+    segs = random_shape(rng, 20)
+    image = np.concatenate([similarity(segs[:14], 1.0, 0.02, 0.01), rng.uniform(-1, 1, size=(8, 2, 2))])
+    for source, target in ((segs, image), (image, segs)):
+        for tolerance in (0.01, 0.04, 0.1):
+            assert matching.coverage(source, target, tolerance) == pytest.approx(
+                reference_coverage(source, target, tolerance), abs=1e-12)
+
+
+def test_prefilter_scores_match_a_plain_gather():
+    rng = np.random.default_rng(8)
+    views = [matching.describe(random_shape(rng, 10) * 1.5) for _ in range(20)]
+    prefilter = matching.ChamferPrefilter(views)
+    region = matching.describe(random_shape(rng, 12) * 1.5)
+    maps = prefilter.distance_maps(region)
+    phis = matching.rotation_candidates(np.stack([v.orientation_histogram for v in views]),
+                                        region.orientation_histogram, 2)
+    f = matching.ChamferPrefilter
+    c, s = np.cos(phis.astype(np.float32))[..., None], np.sin(phis.astype(np.float32))[..., None]
+    x, y = prefilter.points[:, None, :, 0], prefilter.points[:, None, :, 1]
+    xr, yr = c * x - s * y, s * x + c * y
+    cell = 2.0 * f.EXTENT / f.GRID
+    col = np.clip(((xr + f.EXTENT) / cell).astype(int), 0, f.GRID - 1)
+    row = np.clip(((yr + f.EXTENT) / cell).astype(int), 0, f.GRID - 1)
+    ori = np.mod(prefilter.orientations[:, None, :] + phis.astype(np.float32)[..., None], np.pi)
+    b = (ori / np.pi * f.ORIENT_BINS).astype(int) % f.ORIENT_BINS
+    outside = (np.abs(xr) > f.EXTENT) | (np.abs(yr) > f.EXTENT)
+    want = np.where(outside, f.TRUNCATE, maps[b, row, col]).mean(axis=2)
+    assert np.array_equal(prefilter.scores(maps, phis), want)
+    # any angle, not only those in [0, 2 pi) that rotation_candidates gives
+    assert np.allclose(prefilter.scores(maps, phis - 4 * np.pi), want, atol=1e-6)
