@@ -95,10 +95,10 @@ def reference_support(edge_map, gray, model_px, tolerance):
     """support as first written: one distance map per direction bin, three look-ups."""
     ev = pose.EdgeEvidence(edge_map, gray)
     smooth = cv2.GaussianBlur(gray.astype(np.float32), (5, 5), 0)
-    direction = np.mod(np.arctan2(cv2.Sobel(smooth, cv2.CV_32F, 0, 1), cv2.Sobel(smooth, cv2.CV_32F, 1, 0)) + np.pi / 2, np.pi)
-    bins = (direction / np.pi * ev.BINS).astype(int) % ev.BINS
-    maps = np.stack([cv2.distanceTransform(np.where((edge_map > 0) & (bins == b), 0, 255).astype(np.uint8), cv2.DIST_L2, 3)
-                     for b in range(ev.BINS)])
+    dx, dy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0), cv2.Sobel(smooth, cv2.CV_32F, 0, 1)
+    bins = (np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi) / np.pi * ev.BINS).astype(int) % ev.BINS
+    maps = np.stack([cv2.distanceTransform(np.where((edge_map > 0) & (bins == b), 0, 255).astype(np.uint8),
+                                           cv2.DIST_L2, 3) for b in range(ev.BINS)])
     h, w = edge_map.shape
     total = near = 0.0
     for seg, own in zip(model_px, ev.orientation_bin(model_px)):
