@@ -26,7 +26,7 @@ import numpy as np
 from . import matching, pose
 from .aspect_graph import AspectGraph
 from .camera import Camera
-from .geometry import direction_to, rotation_between
+from .geometry import direction_to, rotation_angle_deg, rotation_between
 from .image_edges import detect_edges
 from .metric_space import outline_normalisation as normalisation_of
 from .metric_space import segment_lengths
@@ -203,7 +203,8 @@ class Estimator:
         frame = Frame(segments_px, segments_n, camera, pose.EdgeEvidence(edges.edge_map, edges.gray))
         candidates = sorted((self._verify(h, frame) for h in best_per_region(hypotheses, p.matching.hypotheses)),
                             key=lambda c: -c.score)
-        best = max((self._climb(c, frame) for c in candidates[: p.pose.climb_candidates]), key=lambda c: c.score)
+        starts = distinct_poses(candidates, p.pose.climb_candidates, self.graph.model_diameter)
+        best = max((self._climb(c, frame) for c in starts), key=lambda c: c.score)
         clock = _lap(timings, "refinement", clock)
         timings["total"] = sum(timings.values())
         found = best.score >= p.pose.min_score
@@ -307,7 +308,8 @@ class Estimator:
         A hypothesis from a view 10-30 degrees off refines into a nearby local optimum.
         Each step turns the pose so that the camera sees the part along one of the
         current view's graph neighbours (keeping the part's centre where it is), refines
-        that briefly, and moves to the best-scoring neighbour while the score improves.
+        that briefly, and moves to the best-scoring neighbour while the score improves by
+        more than float noise.
         """
         g, best = self.graph, start
         for _ in range(self._params.pose.view_search_steps):
@@ -319,7 +321,7 @@ class Estimator:
                 R = best.R @ turn
                 R, t = self._refine(R, center - R @ g.model_center, frame, REFINE_SCHEDULE[1:3])
                 score = self._score(R, t, frame)
-                if score > improved.score:
+                if score > improved.score + CLIMB_MIN_GAIN:
                     improved = Candidate(score, R, t, best.hypothesis)
             if improved is best:
                 break
@@ -374,6 +376,14 @@ class Estimator:
 #: fewer segments than this cannot pin down a view, in a region or in a whole image
 MIN_REGION_SEGMENTS = 4
 
+#: refined poses closer than this (rotation, and translation in part diameters) are one pose
+SAME_POSE_DEG = 3.0
+SAME_POSE_DIAMETERS = 0.02
+
+#: a view-search step must raise the score by more than this: neighbours that refine back
+#: into the same pose differ by 1e-14, and following that noise only costs refinements
+CLIMB_MIN_GAIN = 1e-6
+
 #: graph neighbours tried per step of the view search
 NEIGHBOURS = 8
 
@@ -398,6 +408,23 @@ def best_per_region(hypotheses: list[Hypothesis], count: int) -> list[Hypothesis
         own = [h for h in hypotheses if id(h.region) == region_id]
         chosen += sorted(own, key=lambda h: -h.coverage)[:count]
     return chosen
+
+
+def distinct_poses(candidates: list[Candidate], count: int, diameter: float) -> list[Candidate]:
+    """The first ``count`` candidates (best first) that differ from every one kept before.
+
+    Hypotheses from different regions or neighbouring views often refine into the same
+    pose; climbing it twice costs time and explores nothing. Two poses are the same when
+    they differ by less than ``SAME_POSE_DEG`` and ``SAME_POSE_DIAMETERS`` of the part.
+    """
+    kept: list[Candidate] = []
+    for c in candidates:
+        if len(kept) == count:
+            break
+        if all(rotation_angle_deg(c.R, k.R) >= SAME_POSE_DEG
+               or np.linalg.norm(c.t - k.t) >= SAME_POSE_DIAMETERS * diameter for k in kept):
+            kept.append(c)
+    return kept
 
 
 def cluster_segments(segments_px: np.ndarray, gap: float) -> list[np.ndarray]:

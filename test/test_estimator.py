@@ -109,3 +109,17 @@ def test_estimate_command_reports_a_refused_graph(tmp_path, capsys):
     code = estimate_cli.main(["--graph", str(bad), "--camera", str(tmp_path / "c.json"), "x.png", "-o", "p.json"])
     assert code == 2
     assert "error:" in capsys.readouterr().err
+
+
+def test_climb_starts_skip_poses_already_taken():
+    """Candidates that refined into one pose are climbed once; the next distinct one is taken."""
+    from brepose_ros.estimator import Candidate, distinct_poses
+    from brepose_ros.geometry import rot_z
+
+    t = np.array([0.0, 0.0, 0.3])
+    same = [Candidate(0.9, np.eye(3), t, None), Candidate(0.8, rot_z(np.radians(1.0)), t + 0.0005, None)]
+    turned = Candidate(0.7, rot_z(np.radians(20.0)), t, None)
+    moved = Candidate(0.6, np.eye(3), t + [0.01, 0, 0], None)
+    starts = distinct_poses(same + [turned, moved], 2, diameter=0.1)
+    assert [c.score for c in starts] == [0.9, 0.7]
+    assert [c.score for c in distinct_poses(same + [turned, moved], 3, diameter=0.1)] == [0.9, 0.7, 0.6]
