@@ -217,8 +217,12 @@ class EdgeEvidence:
       to it).
     * ``explained`` (image -> model): share of the edge pixels inside the projected part's
       convex outline, grown by ``OUTLINE_MARGIN``, lying within ``tolerance`` of a
-      projected model edge. The margin is what stops a small pose that fits one inner
-      feature (a window of the part) from explaining everything it covers.
+      projected model edge. The margin, at least ``MIN_MARGIN_PX``, is what stops a small
+      pose that fits one inner feature (a window of the part) from explaining everything
+      it covers: a relative margin alone grows with the pose, and poses 5x too far away
+      that sat on one hole of the part outscored the true pose on clean images (measured
+      on bench/accuracy.py scenes: with the floor, 78 instead of 74 of 96 clean images
+      succeed, together with 6 hypotheses per region).
 
     Both run hundreds of times per image and only ask whether a distance is within
     ``tolerance``, so neither computes distances: with OpenCV's 3x3 chamfer distance
@@ -231,6 +235,7 @@ class EdgeEvidence:
 
     BINS = 8
     OUTLINE_MARGIN = 0.2
+    MIN_MARGIN_PX = 40.0
 
     def __init__(self, edge_map: np.ndarray, gray: np.ndarray):
         self.shape = edge_map.shape
@@ -272,14 +277,20 @@ class EdgeEvidence:
                                                      y[inside], x[inside]]
         return float(weight[near].sum() / max(weight.sum(), 1e-12))
 
+    @classmethod
+    def grown_outline(cls, points: np.ndarray) -> np.ndarray:
+        """Convex hull of the points, grown about its centre by the margin (class doc)."""
+        hull = cv2.convexHull(np.asarray(points, np.float32).reshape(-1, 2)).reshape(-1, 2).astype(np.float64)
+        center = hull.mean(axis=0)
+        radius = max(float(np.sqrt(np.mean(np.sum((hull - center) ** 2, axis=1)))), 1.0)
+        return center + (1.0 + max(cls.OUTLINE_MARGIN, cls.MIN_MARGIN_PX / radius)) * (hull - center)
+
     def explained(self, model_px: np.ndarray, tolerance_px: float) -> float:
         if len(model_px) == 0:
             return 0.0
         h, w = self.shape
         pts = np.clip(np.asarray(model_px, np.float64).reshape(-1, 2), -4.0 * max(h, w), 5.0 * max(h, w))
-        hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2)
-        center = hull.mean(axis=0)
-        hull = center + (1.0 + self.OUTLINE_MARGIN) * (hull - center)
+        hull = self.grown_outline(pts)
         # work in the outline's bounding box only: a part rarely fills the image
         pad = int(np.ceil(tolerance_px)) + 1
         x0, y0 = np.maximum(np.floor(hull.min(axis=0)).astype(int) - pad, 0)

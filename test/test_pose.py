@@ -50,6 +50,17 @@ def reference_nearest_lines(model_2d, image_2d, tolerance, max_angle_deg=10.0):
     return np.array(mi, int), np.array(ii, int), np.array(dist)
 
 
+def test_outline_margin_has_a_floor_in_pixels():
+    """A small pose's outline grows by at least MIN_MARGIN_PX, a large one by OUTLINE_MARGIN."""
+    square = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+    for half in (10.0, 400.0):
+        grown = pose.EdgeEvidence.grown_outline(300.0 + half * square)
+        radius = half * np.sqrt(2.0)
+        margin = np.linalg.norm(grown[0] - 300.0) - radius
+        expected = max(pose.EdgeEvidence.OUTLINE_MARGIN * radius, pose.EdgeEvidence.MIN_MARGIN_PX)
+        assert margin == pytest.approx(expected)
+
+
 def test_nearest_lines_matches_the_pairwise_definition():
     rng = np.random.default_rng(1)
     model = random_segments(rng, 30)
@@ -116,8 +127,7 @@ def reference_explained(edge_map, model_px, tolerance):
     """explained without the bounding-box crop: the whole image, a distance transform."""
     h, w = edge_map.shape
     pts = np.clip(model_px.reshape(-1, 2), -4.0 * max(h, w), 5.0 * max(h, w))
-    hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2)
-    hull = hull.mean(axis=0) + (1.0 + pose.EdgeEvidence.OUTLINE_MARGIN) * (hull - hull.mean(axis=0))
+    hull = pose.EdgeEvidence.grown_outline(pts)
     outline = np.zeros((h, w), np.uint8)
     cv2.fillConvexPoly(outline, np.round(hull).astype(np.int32), 1)
     inside = (edge_map > 0) & (outline > 0)
