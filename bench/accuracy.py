@@ -4,8 +4,8 @@
 
 Parts are built-in names or STEP paths; by default the paper's two brackets plus two real
 parts from ../shared/data/step when that folder is beside the clone. Each part is seen in
-three conditions: clean and centred; off-centre with 30 % occlusion and 3 clutter shapes;
-50 % occlusion. Aspect graphs and scenes are cached under data/bench/ (git-ignored).
+five conditions: clean and centred; off-centre among 3 clutter shapes; 30 % occluded;
+off-centre with 30 % occlusion and 3 clutter shapes; 50 % occlusion. Aspect graphs and scenes are cached under data/bench/ (git-ignored).
 Metrics follow ../shared/CONVENTIONS.md.
 """
 from __future__ import annotations
@@ -26,6 +26,8 @@ from brepose_ros.scenes import SceneConfig, generate_scene, load_scene  # noqa: 
 
 CONDITIONS = {
     "clean": SceneConfig(),
+    "clutter": SceneConfig(offcenter=True, clutter=3),
+    "occl30": SceneConfig(occlusion=0.3),
     "occl30+clutter": SceneConfig(offcenter=True, occlusion=0.3, clutter=3),
     "occl50": SceneConfig(occlusion=0.5),
 }
