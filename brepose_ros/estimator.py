@@ -9,14 +9,15 @@
       --pose--> first metric pose per hypothesis --refine--> refined poses, scored on edge pixels
       --hill-climb over neighbouring views--> best pose; found if its score passes pose.min_score
 
-The (region, view) jobs of one image can be spread over ``matching.workers`` threads, one
-batch per thread. Measured (bench/latency.py), 2 threads are slower than 1: each job is
-dozens of small numpy calls that hold the GIL, and Kuhn-Munkres, which releases it, is about
-1 % of the time; so the default is 1, and real parallelism will need vectorising the jobs
-across views or processes.
+The (region, view, rotation) jobs of one image run region by region, all jobs of a region
+as one batch of array operations (``matching.SegmentBatch``); ``matching.workers`` threads
+split each region's batch between them. Measured (bench/latency.py, 1,505 views, the other
+core busy), 2 threads are still no faster than 1 (matching 38-46 against 33-40 ms per
+image): the batched steps are short and most of them hold the GIL; so the default is 1.
 """
 from __future__ import annotations
 
+import itertools
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -251,48 +252,55 @@ class Estimator:
                       self._views.prefilter.distance_maps(features))
 
     def _match_all(self, jobs: list[tuple[Region, int, float]]) -> list[Hypothesis]:
+        """Hypotheses of the jobs, in job order. Consecutive jobs of one region run together
+        (``_match_batch``), split into one batch per thread."""
         workers = max(1, self._params.matching.workers)
-        batches = [jobs[i::workers] for i in range(workers)]
-        results = self._pool.map(self._match_batch, batches)
-        return [h for batch in results for h in batch if h is not None]
+        batches = []
+        for _, run in itertools.groupby(jobs, key=lambda job: id(job[0])):
+            run = list(run)
+            size = -(-len(run) // workers)
+            batches += [run[i:i + size] for i in range(0, len(run), size)]
+        return [h for batch in self._pool.map(self._match_batch, batches) for h in batch]
 
-    def _match_batch(self, jobs: list[tuple[Region, int, float]]) -> list[Hypothesis | None]:
-        return [self._match_view(region, view, phi) for region, view, phi in jobs]
-
-    def _match_view(self, region: Region, view: int, phi: float) -> Hypothesis | None:
-        """Kuhn-Munkres at the shortlisted rotation, the similarity its nearest pairs imply,
-        then that similarity polished by 2D ICP against the region's lines."""
+    def _match_batch(self, jobs: list[tuple[Region, int, float]]) -> list[Hypothesis]:
+        """Kuhn-Munkres at each shortlisted rotation, the similarity its nearest pairs imply,
+        then that similarity polished by 2D ICP against the region's lines: for jobs of one
+        region at once (``matching.SegmentBatch``); jobs whose pairs give no similarity drop out."""
         p = self._params.matching
-        model = self._views.features[view]
-        best = matching.assign(model, region.features, phi, p)
-        similarity = matching.similarity_from_pairs(model, region.features, best, phi)
-        if similarity is None:
-            return None
-        moved = matching.apply_similarity(model.segments, *similarity)
+        region, image = jobs[0][0], jobs[0][0].features
+        views = np.array([view for _, view, _ in jobs])
+        phi = np.array([phi for _, _, phi in jobs])
+        model = matching.SegmentBatch.pad([self._views.features[v].segments for v in views], p.max_model_segments)
+        best = matching.assign(model, image, phi, p)
+        similarity = matching.similarity_from_pairs(model, image, best, phi)
+        found = np.nonzero(similarity.found)[0]
+        if len(found) == 0:
+            return []
+        model, best, similarity, views = (matching.take(model, found), matching.take(best, found),
+                                          matching.take(similarity, found), views[found])
         # re-match with the similarity applied: the pairs now say what is really aligned
-        refined = matching.assign(matching.describe(moved), region.features, 0.0, p)
-        if refined.cost < best.cost:
-            better = matching.similarity_from_pairs(model, region.features, refined, similarity[1])
-            if better is not None:
-                best, similarity = refined, better
-                moved = matching.apply_similarity(model.segments, *similarity)
+        moved = matching.apply_similarity(model.segments, similarity.scale, similarity.angle, similarity.shift)
+        refined = matching.assign(matching.SegmentBatch.of(moved, model.valid), image, np.zeros(len(views)), p)
+        better = matching.similarity_from_pairs(model, image, refined, similarity.angle)
+        switch = (refined.cost < best.cost) & better.found
+        for name in ("scale", "angle", "shift"):
+            getattr(similarity, name)[switch] = getattr(better, name)[switch]
+        a, angle, b = similarity.scale, similarity.angle, similarity.shift
+        moved = matching.apply_similarity(model.segments, a, angle, b)
         tolerance = p.coverage_tolerance
-        moved, polish = matching.align_to_lines(moved, region.features.segments,
-                                                (3 * tolerance, tolerance))
-        a, angle, b = similarity
-        c, s = np.cos(angle), np.sin(angle)
-        A = polish[:, :2] @ (a * np.array([[c, -s], [s, c]]))
-        b = polish[:, :2] @ b + polish[:, 2]
-        a, angle = float(np.sqrt(abs(np.linalg.det(A)))), float(np.arctan2(A[1, 0], A[0, 0]))
-        covered_model = matching.coverage(moved, region.features.segments, tolerance)
-        covered_image = matching.coverage(region.features.segments, moved, tolerance)
-        f_measure = 2 * covered_model * covered_image / max(covered_model + covered_image, 1e-12)
+        moved, polish = matching.align_to_lines(moved, model.valid, image.segments, (3 * tolerance, tolerance))
+        A = polish[:, :, :2] @ (a[:, None, None] * matching.rotations(angle))
+        b = np.einsum("jkl,jl->jk", polish[:, :, :2], b) + polish[:, :, 2]
+        a, angle = np.sqrt(np.abs(np.linalg.det(A))), np.arctan2(A[:, 1, 0], A[:, 0, 0])
+        covered_model, covered_image = matching.coverage(moved, model.valid, image.segments, tolerance)
+        f_measure = 2 * covered_model * covered_image / np.maximum(covered_model + covered_image, 1e-12)
         # compose: view metres -> view normalised -> region normalised -> virtual image
-        norm_v = self._views.normalisation[view]
-        scale = region.scale * a / norm_v.scale
-        rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
-        shift = region.center + region.scale * b - scale * rot @ norm_v.center
-        return Hypothesis(region, view, scale, angle, shift, f_measure)
+        norm_v = [self._views.normalisation[v] for v in views]
+        scale = region.scale * a / np.array([n.scale for n in norm_v])
+        turned = np.einsum("jkl,jl->jk", matching.rotations(angle), np.array([n.center for n in norm_v]))
+        shift = region.center + region.scale * b - scale[:, None] * turned
+        return [Hypothesis(region, int(views[j]), float(scale[j]), float(angle[j]), shift[j], float(f_measure[j]))
+                for j in range(len(views))]
 
     def _verify(self, hyp: Hypothesis, frame: "Frame") -> "Candidate":
         """The first pose of a hypothesis, refined against the image lines, and its score."""

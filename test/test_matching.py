@@ -57,50 +57,112 @@ def test_rotation_candidates_contain_true_rotation():
         assert np.min(np.abs(wrap_angle(phis - angle))) < np.radians(3)
 
 
+def batch(*sets, size=None):
+    """The segment sets as one padded batch (to ``size``, or to the largest set plus 3)."""
+    return matching.SegmentBatch.pad(list(sets), size or max(len(s) for s in sets) + 3)
+
+
 def test_assignment_recovers_pairs_and_similarity_despite_clutter():
     rng = np.random.default_rng(4)
     segs = random_shape(rng, 16)
     order = rng.permutation(len(segs))
     image = similarity(segs[order], 1.0, 1.1, 0.0) + rng.normal(0, 0.01, size=(len(segs), 2, 2))
     clutter = rng.uniform(-2, 2, size=(6, 2, 2))
-    image_all = np.concatenate([image, clutter])
-    p = MatchParams()
-    model_f, image_f = matching.describe(segs), matching.describe(image_all)
-    assignment = matching.assign(model_f, image_f, 1.1, p)
-    found = dict(zip(assignment.model_index, assignment.image_index))
-    correct = sum(found.get(order[i]) == i for i in range(len(segs)))
+    image_f = matching.describe(np.concatenate([image, clutter]))
+    model = batch(segs)
+    phi = np.array([1.1])
+    assignment = matching.assign(model, image_f, phi, MatchParams())
+    found = assignment.image_index[0]
+    correct = sum(found[order[i]] == i for i in range(len(segs)))
     assert correct >= len(segs) - 2
-    assert assignment.error_ratio < 0.3
-    scale, angle, shift = matching.similarity_from_pairs(model_f, image_f, assignment, 1.1)
-    assert scale == pytest.approx(1.0, abs=0.05)
-    assert wrap_angle(angle - 1.1) == pytest.approx(0.0, abs=0.03)
-    assert np.linalg.norm(shift) < 0.05
+    assert assignment.error_ratio[0] < 0.3
+    fit = matching.similarity_from_pairs(model, image_f, assignment, phi)
+    assert fit.found[0]
+    assert fit.scale[0] == pytest.approx(1.0, abs=0.05)
+    assert wrap_angle(fit.angle[0] - 1.1) == pytest.approx(0.0, abs=0.03)
+    assert np.linalg.norm(fit.shift[0]) < 0.05
 
 
 def test_wrong_rotation_costs_more_than_right_one():
     rng = np.random.default_rng(5)
     segs = random_shape(rng)
-    model_f = matching.describe(segs)
     image_f = matching.describe(similarity(segs, 1.0, 0.5, 0.0))
+    result = matching.assign(batch(segs, segs), image_f, np.array([0.5, 0.5 + np.pi / 2]), MatchParams())
+    assert result.cost[0] < 0.5 * result.cost[1]
+    assert result.error_ratio[0] < result.error_ratio[1]
+
+
+def reference_distance_matrix(model, image, phi, p):
+    """distance_matrix of one set, as it was written before batching."""
+    c, s = np.cos(phi), np.sin(phi)
+    rot = np.array([[c, -s], [s, c]])
+    d_len = model.lengths[:, None] - image.lengths[None, :]
+    d_mid = (model.midpoints @ rot.T)[:, None, :] - image.midpoints[None, :, :]
+    d_feet = (model.feet @ rot.T)[:, None, :] - image.feet[None, :, :]
+    d_ori = np.mod(model.orientations[:, None] + phi - image.orientations[None, :] + np.pi / 2, np.pi) - np.pi / 2
+    return np.sqrt(p.weight_length * d_len**2
+                   + p.weight_midpoint * np.einsum("ijk,ijk->ij", d_mid, d_mid)
+                   + p.weight_orientation * d_ori**2
+                   + p.weight_perpendicular * np.einsum("ijk,ijk->ij", d_feet, d_feet))
+
+
+def test_batched_distances_are_the_per_set_distances_to_the_bit():
+    rng = np.random.default_rng(9)
+    sets = [random_shape(rng, n) for n in (5, 9, 14, 14)]
+    image = matching.describe(random_shape(rng, 11))
+    phis = np.array([0.0, 1.3, np.pi, 2 * np.pi - 1e-12])
     p = MatchParams()
-    right = matching.assign(model_f, image_f, 0.5, p)
-    wrong = matching.assign(model_f, image_f, 0.5 + np.pi / 2, p)
-    assert right.cost < 0.5 * wrong.cost
-    assert right.error_ratio < wrong.error_ratio
+    dist = matching.distance_matrix(batch(*sets), image, phis, p)
+    for j, segs in enumerate(sets):
+        want = reference_distance_matrix(matching.describe(segs), image, phis[j], p)
+        assert np.array_equal(dist[j, :len(segs)], want)
+
+
+def test_mod_pi_is_np_mod_to_the_bit():
+    rng = np.random.default_rng(10)
+    near_multiples = np.array([np.nextafter(k * np.pi, side) for k in range(-1, 5) for side in (-np.inf, np.inf)]
+                              + [k * np.pi for k in range(-1, 4)] + [0.0, -0.0])
+    x = np.concatenate([near_multiples[(near_multiples >= -np.pi) & (near_multiples < 4 * np.pi)],
+                        rng.uniform(-np.pi, 4 * np.pi, 200_000)])
+    assert np.array_equal(matching._mod_pi(x), np.mod(x, np.pi))
+    outside = np.array([-4.0, 13.0, 100.0])
+    assert np.array_equal(matching._mod_pi(outside), np.mod(outside, np.pi))
+
+
+def test_padding_changes_no_assignment():
+    """Padded segments never match and never set the empty distance, whose matrix maximum
+    is over the set's real entries: a set gives the same pairs alone and in a batch."""
+    rng = np.random.default_rng(11)
+    sets = [random_shape(rng, n) * 0.2 for n in (4, 12, 7)]  # small sets: padding lies far
+    image = matching.describe(np.concatenate([random_shape(rng, 10), [[[-3.0, -3.0], [3.0, 3.0]]]]))
+    phis = np.array([0.2, 2.0, 4.0])
+    p = MatchParams()
+    together = matching.assign(batch(*sets, size=20), image, phis, p)
+    for j, segs in enumerate(sets):
+        alone = matching.assign(batch(segs, size=len(segs)), image, phis[j:j + 1], p)
+        n = len(segs)
+        assert np.array_equal(together.image_index[j, :n], alone.image_index[0])
+        assert np.all(together.image_index[j, n:] == -1)
+        assert np.array_equal(together.nearest[j, :n], alone.nearest[0]) and not together.nearest[j, n:].any()
+        assert together.empty_distance[j] == alone.empty_distance[0] == p.empty_coefficient * np.max(
+            reference_distance_matrix(matching.describe(segs), image, phis[j], p))
+        assert together.cost[j] == pytest.approx(alone.cost[0], rel=1e-15)
 
 
 def test_weighted_similarity_is_exact_on_clean_points():
     rng = np.random.default_rng(6)
-    src = rng.normal(size=(10, 2))
-    dst = similarity(src[:, None, :], 2.5, -0.4, np.array([1.0, 2.0]))[:, 0]
-    scale, angle, shift = matching.weighted_similarity(src, dst, np.ones(10))
-    assert scale == pytest.approx(2.5)
-    assert angle == pytest.approx(-0.4)
-    assert np.allclose(shift, [1.0, 2.0])
+    src = rng.normal(size=(2, 10, 2))
+    src[1] = 1.0  # no spread: no similarity
+    dst = similarity(src[0][:, None, :], 2.5, -0.4, np.array([1.0, 2.0]))[:, 0]
+    fit = matching.weighted_similarity(src, np.stack([dst, dst]), np.ones((2, 10)))
+    assert fit.found.tolist() == [True, False]
+    assert fit.scale[0] == pytest.approx(2.5)
+    assert fit.angle[0] == pytest.approx(-0.4)
+    assert np.allclose(fit.shift[0], [1.0, 2.0])
 
 
 def reference_coverage(source, target, tolerance, max_angle_deg=12.0, per_segment=4):
-    """coverage written point by point."""
+    """One direction of coverage written point by point."""
     covered = total = 0.0
     for a, b in source:
         for k in range(per_segment):
@@ -119,11 +181,45 @@ def reference_coverage(source, target, tolerance, max_angle_deg=12.0, per_segmen
 def test_coverage_matches_the_pointwise_definition():
     rng = np.random.default_rng(7)
     segs = random_shape(rng, 20)
-    image = np.concatenate([similarity(segs[:14], 1.0, 0.02, 0.01), rng.uniform(-1, 1, size=(8, 2, 2))])
-    for source, target in ((segs, image), (image, segs)):
-        for tolerance in (0.01, 0.04, 0.1):
-            assert matching.coverage(source, target, tolerance) == pytest.approx(
-                reference_coverage(source, target, tolerance), abs=1e-12)
+    sets = [segs, segs[5:12], similarity(segs, 1.0, 0.05, 0.03)]
+    model = batch(*sets)
+    for tolerance in (0.01, 0.04, 0.1):
+        # some image segments just within and just beyond the tolerance
+        image = np.concatenate([similarity(segs[:14], 1.0, 0.02, 0.01), segs[14:17] + 0.9 * tolerance / np.sqrt(2),
+                                segs[17:] + 1.1 * tolerance, rng.uniform(-1, 1, size=(8, 2, 2))])
+        model_share, image_share = matching.coverage(model.segments, model.valid, image, tolerance)
+        for j, source in enumerate(sets):
+            assert model_share[j] == pytest.approx(reference_coverage(source, image, tolerance), abs=1e-12)
+            assert image_share[j] == pytest.approx(reference_coverage(image, source, tolerance), abs=1e-12)
+
+
+def test_least_squares_is_lstsq_also_where_the_normal_equations_fail():
+    rng = np.random.default_rng(12)
+    rows, rhs = rng.normal(size=(3, 12, 4)), rng.normal(size=(3, 12))
+    rows[1, :, 2:] = [0.6, 0.8]  # every point on one line: rank 3, lstsq's minimum-norm answer
+    rows[2, 8:], rhs[2, 8:] = 0.0, 0.0  # four padding rows
+    used = np.ones((3, 12), bool)
+    used[2, 8:] = False
+    got = matching._least_squares(rows, rhs, used)
+    for j in range(3):
+        want = np.linalg.lstsq(rows[j, used[j]], rhs[j, used[j]], rcond=None)[0]
+        assert np.allclose(got[j], want, rtol=1e-12, atol=1e-12)
+
+
+def test_align_to_lines_pulls_each_set_onto_the_image():
+    rng = np.random.default_rng(13)
+    image = random_shape(rng, 16)
+    sets = [similarity(image, 1.02, 0.015, np.array([0.01, -0.02])), similarity(image[3:12], 0.98, -0.01, 0.015),
+            image[:2]]  # too few segments to align: left alone
+    model = batch(*sets)
+    moved, total = matching.align_to_lines(model.segments, model.valid, image, (0.12, 0.04))
+    for j in range(2):
+        n = len(sets[j])
+        assert np.abs(moved[j, :n] - image[3 * j:3 * j + n]).max() < 1e-9
+        assert np.allclose(sets[j] @ total[j, :, :2].T + total[j, :, 2], moved[j, :n])
+        alone, _ = matching.align_to_lines(model.segments[j:j + 1], model.valid[j:j + 1], image, (0.12, 0.04))
+        assert np.allclose(alone[0], moved[j], rtol=0, atol=1e-14)
+    assert np.array_equal(moved[2], model.segments[2]) and np.array_equal(total[2], np.eye(2, 3))
 
 
 def test_prefilter_scores_match_a_plain_gather():
