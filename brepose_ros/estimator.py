@@ -118,6 +118,12 @@ ERROR_RATIO_REACH = 4.0
 #: association tolerances of the refinement rounds, in units of pose.inlier_pixels
 REFINE_SCHEDULE = (8.0, 4.0, 2.0, 1.0, 1.0, 1.0)
 
+#: Gauss-Newton steps per round: the wide rounds only need to move the pose near enough for
+#: the next association, so 3 steps do (measured: same success on 96 clean images, the
+#: refinement stage 25-35 % faster); the rounds at the final tolerance converge fully
+ROUGH_ITERATIONS = 3
+FINE_ITERATIONS = 8
+
 
 class ViewLibrary:
     """Per-view features for matching, computed once from the aspect graph."""
@@ -346,7 +352,7 @@ class Estimator:
                 break
             model_3d = g.seg_3d[self._visible_segments(R, t)]
             matches = pose.associate(model_3d, R, t, frame.segments_n, factor * tolerance)
-            R, t = pose.refine_pose(R, t, matches, tolerance)
+            R, t = pose.refine_pose(R, t, matches, tolerance, ROUGH_ITERATIONS if factor > 1 else FINE_ITERATIONS)
         return R, t
 
     def _score(self, R, t, frame: "Frame") -> float:
