@@ -34,7 +34,7 @@ class MatchParams:
     max_image_segments: int = doc("longest image segments used in matching per region", 90)
     max_regions: int = doc("candidate image regions (whole image, edge clusters) matched per image", 6)
     hypotheses: int = doc("best-covered (view, rotation) hypotheses per region turned into poses and verified", 6)
-    workers: int = doc("worker threads that share the views of one image; 1 by default: the matching is many small numpy calls that hold the GIL, and 2 threads measured slower (bench/latency.py)", 1)
+    workers: int = doc("worker threads that split each region's batch of (view, rotation) jobs; 1 by default: the batched steps are short and mostly hold the GIL, and 2 threads measured no faster (bench/latency.py)", 1)
 
 
 @dataclass(frozen=True)
