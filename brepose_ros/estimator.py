@@ -27,7 +27,7 @@ import numpy as np
 from . import matching, pose
 from .aspect_graph import AspectGraph
 from .camera import Camera
-from .geometry import direction_to, rotation_angle_deg, rotation_between
+from .geometry import rotation_angle_deg, rotation_between
 from .image_edges import detect_edges
 from .metric_space import outline_normalisation as normalisation_of
 from .metric_space import segment_lengths
@@ -377,9 +377,11 @@ class Estimator:
         return 2 * confirmed * explained / max(confirmed + explained, 1e-12)
 
     def _nearest_view(self, R: np.ndarray, t: np.ndarray) -> int:
-        """The graph view nearest to the direction the camera sees the part from."""
+        """The graph view nearest to the direction the camera sees the part from
+        (``geometry.direction_to`` without its normalisation, which cannot change the largest
+        product; this runs thousands of times per image)."""
         g = self.graph
-        return int(np.argmax(g.view_directions @ direction_to(g.model_center, R, t)))
+        return int(np.argmax(g.view_directions @ (g.model_center + R.T @ t)))
 
     def _visible_segments(self, R: np.ndarray, t: np.ndarray) -> slice:
         """Segments visible from the graph view nearest to the pose's viewing direction."""

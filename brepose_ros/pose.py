@@ -143,16 +143,22 @@ def nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, tolerance: float,
     axes = np.concatenate([m_unit, m_unit[:, ::-1] * [-1.0, 1.0]])  # (2M, 2)
     origins = (axes.reshape(2, n_model, 2) * model_2d[:, 0]).sum(axis=2).reshape(-1, 1)
     coords = axes @ image_2d.transpose(2, 1, 0).reshape(2, -1) - origins
-    along, normal = coords[:n_model], coords[n_model:]
-    perp = np.maximum(np.abs(normal[:, :n_image]), np.abs(normal[:, n_image:]))
-    overlaps = (np.minimum(np.maximum(along[:, :n_image], along[:, n_image:]), m_len[:, None])
-                > np.maximum(np.minimum(along[:, :n_image], along[:, n_image:]), 0.0))
-    valid = (cos > np.cos(np.radians(max_angle_deg))) & (perp < tolerance) & overlaps & (m_len > 1e-12)[:, None]
+    along, normal = coords[:n_model], np.abs(coords[n_model:])
+    perp = np.maximum(normal[:, :n_image], normal[:, n_image:])
+    start, end = along[:, :n_image], along[:, n_image:]
+    overlaps = np.minimum(np.maximum(start, end), m_len[:, None]) > np.maximum(np.minimum(start, end), 0.0)
+    valid = (cos > _cos_deg(max_angle_deg)) & (perp < tolerance) & overlaps & (m_len > 1e-12)[:, None]
     cost = np.where(valid, perp, np.inf)
     best = np.argmin(cost, axis=1)
     best_cost = cost[np.arange(n_model), best]
-    keep = np.isfinite(best_cost)
+    keep = best_cost < np.inf
     return np.nonzero(keep)[0], best[keep], best_cost[keep]
+
+
+@lru_cache(maxsize=8)
+def _cos_deg(angle_deg: float) -> float:
+    """Cosine of a fixed angle, kept: ``nearest_lines`` runs thousands of times per image."""
+    return float(np.cos(np.radians(angle_deg)))
 
 
 def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: float,
@@ -164,8 +170,8 @@ def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: flo
     unknowns, so each step is a 6x6 solve; far cheaper than a generic solver with numeric
     derivatives, which dominated the run time. It runs hundreds of times per image on
     about a hundred points, so numpy's per-call overhead is the cost: arrays are laid out
-    one row per coordinate, the cross product is written out, and the 6x6 solve and the
-    rotation go to OpenCV (np.cross, np.linalg.solve and scipy's Rotation took most of
+    one row per coordinate, the Jacobian is written in place with the cross product written
+    out, and the 6x6 solve and the rotation go to OpenCV (np.cross, np.linalg.solve and scipy's Rotation took most of
     the time).
     """
     if len(matches.model_3d) < 3:
@@ -174,6 +180,7 @@ def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: flo
     nx, ny, offsets = np.repeat(lines, 2, axis=0).T
     points = matches.model_3d.reshape(-1, 3).T  # (3, N)
     jac = np.empty((6, points.shape[1]))  # d residual / d (w, dt), one column per end point
+    rows = jac[3:]  # g below, written in place: every whole-array operation costs
     for _ in range(iterations):
         rotated = R @ points
         x, y, z = rotated + t[:, None]
@@ -182,12 +189,17 @@ def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: flo
         residual = along_normal + offsets
         # d residual / d X_cam = g, then chain through X_cam = exp(w) R X + t:
         # g . (w x RX) = w . (RX x g)
-        g = jac[3:]
-        g[0], g[1], g[2] = nx / z, ny / z, -along_normal / z
-        jac[:3] = rotated[_NEXT] * g[_AFTER] - rotated[_AFTER] * g[_NEXT]
+        np.divide(nx, z, out=rows[0])
+        np.divide(ny, z, out=rows[1])
+        np.divide(along_normal, z, out=rows[2])
+        np.negative(rows[2], out=rows[2])
+        (r0, r1, r2), (g0, g1, g2) = rotated, rows
+        np.subtract(r1 * g2, r2 * g1, out=jac[0])
+        np.subtract(r2 * g0, r0 * g2, out=jac[1])
+        np.subtract(r0 * g1, r1 * g0, out=jac[2])
         weighted = jac * (f_scale / np.maximum(np.abs(residual), f_scale))  # Huber: 1 within f_scale
         hessian = weighted @ jac.T
-        hessian += 1e-6 * hessian.trace() / 6.0 * _EYE6  # damping: degenerate line sets
+        hessian.flat[::7] += 1e-6 * hessian.trace() / 6.0  # damping: degenerate line sets
         solved, step = cv2.solve(hessian, -(weighted @ residual), flags=cv2.DECOMP_CHOLESKY)
         step = step[:, 0]
         if not solved or not np.isfinite(step).all():
@@ -197,10 +209,6 @@ def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: flo
         if step @ step < 1e-14:
             break
     return R, t
-
-
-_NEXT, _AFTER = [1, 2, 0], [2, 0, 1]  # a x b = a[_NEXT] b[_AFTER] - a[_AFTER] b[_NEXT]
-_EYE6 = np.eye(6)
 
 
 class EdgeEvidence:
@@ -253,28 +261,31 @@ class EdgeEvidence:
         self._near_like = {}  # tolerance -> like_edges dilated by its chamfer ball
 
     def orientation_bin(self, segments: np.ndarray) -> np.ndarray:
-        d = segments[:, 1] - segments[:, 0]
+        return self._bins_of(segments[:, 1] - segments[:, 0])
+
+    def _bins_of(self, d: np.ndarray) -> np.ndarray:
         return (np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi) / np.pi * self.BINS).astype(int) % self.BINS
 
     def support(self, model_px: np.ndarray, tolerance_px: float) -> float:
         if len(model_px) == 0:
             return 0.0
         if tolerance_px not in self._near_like:
+            # one pixel of False around the image: points outside it are clipped onto that
+            # border instead of being masked out (a mask costs several array operations)
             ball = chamfer_ball(tolerance_px)
-            self._near_like[tolerance_px] = np.stack([cv2.dilate(m, ball) for m in self.like_edges]) > 0
+            self._near_like[tolerance_px] = np.pad(np.stack([cv2.dilate(m, ball) for m in self.like_edges]) > 0,
+                                                   ((0, 0), (1, 1), (1, 1)))
         h, w = self.shape
-        lengths = np.linalg.norm(model_px[:, 1] - model_px[:, 0], axis=1)
+        delta = model_px[:, 1] - model_px[:, 0]
+        lengths = np.sqrt((delta * delta).sum(axis=1))
         counts = np.clip(np.ceil(lengths / 2.0).astype(int), 1, 2000)
         seg_idx = np.repeat(np.arange(len(model_px)), counts)
         offsets = np.arange(len(seg_idx)) - np.repeat(np.cumsum(counts) - counts, counts)
         frac = (offsets + 0.5) / counts[seg_idx]
-        pts = model_px[seg_idx, 0] + frac[:, None] * (model_px[seg_idx, 1] - model_px[seg_idx, 0])
+        pts = model_px[:, 0][seg_idx] + frac[:, None] * delta[seg_idx]
         weight = (lengths / counts)[seg_idx]
-        x, y = np.round(pts[:, 0]).astype(int), np.round(pts[:, 1]).astype(int)
-        inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-        near = np.zeros(len(pts), bool)
-        near[inside] = self._near_like[tolerance_px][self.orientation_bin(model_px)[seg_idx][inside],
-                                                     y[inside], x[inside]]
+        x, y = np.clip(np.rint(pts).astype(int) + 1, 0, [w + 1, h + 1]).T
+        near = self._near_like[tolerance_px][self._bins_of(delta)[seg_idx], y, x]
         return float(weight[near].sum() / max(weight.sum(), 1e-12))
 
     @classmethod
@@ -301,12 +312,13 @@ class EdgeEvidence:
         outline = np.zeros((y1 - y0, x1 - x0), np.uint8)
         cv2.fillConvexPoly(outline, np.round(hull - offset).astype(np.int32), 1)
         inside = self.edges[y0:y1, x0:x1] & (outline > 0)
-        if not inside.any():
+        total = np.count_nonzero(inside)
+        if total == 0:
             return 0.0
         drawn = np.zeros(outline.shape, np.uint8)
-        cv2.polylines(drawn, list(np.round(pts.reshape(-1, 2, 2) - offset).astype(np.int32)), False, 1, 1)
+        cv2.polylines(drawn, np.rint(pts.reshape(-1, 2, 2) - offset).astype(np.int32), False, 1, 1)
         near = cv2.dilate(drawn, chamfer_ball(tolerance_px)) > 0
-        return float((near & inside).sum() / inside.sum())
+        return float(np.count_nonzero(near & inside) / total)
 
 
 @lru_cache(maxsize=16)
