@@ -208,7 +208,7 @@ class Estimator:
         if not hypotheses:
             return not_found
         frame = Frame(segments_px, segments_n, camera, pose.EdgeEvidence(edges.edge_map, edges.gray))
-        candidates = sorted((self._verify(h, frame) for h in best_per_region(hypotheses, p.matching.hypotheses)),
+        candidates = sorted(self._verify(best_per_region(hypotheses, p.matching.hypotheses), frame),
                             key=lambda c: -c.score)
         starts = distinct_poses(candidates, p.pose.climb_candidates, self.graph.model_diameter)
         best = max((self._climb(c, frame) for c in starts), key=lambda c: c.score)
@@ -308,51 +308,64 @@ class Estimator:
         return [Hypothesis(region, int(views[j]), float(scale[j]), float(angle[j]), shift[j], float(f_measure[j]))
                 for j in range(len(views))]
 
-    def _verify(self, hyp: Hypothesis, frame: "Frame") -> "Candidate":
-        """The first pose of a hypothesis, refined against the image lines, and its score."""
+    def _verify(self, hypotheses: list[Hypothesis], frame: "Frame") -> list["Candidate"]:
+        """The first poses of the hypotheses, refined together against the image lines, and
+        their scores."""
         g = self.graph
-        R, t = pose.pose_from_similarity(g.view_rotations[hyp.view], g.model_center, hyp.scale,
-                                         hyp.phi, hyp.shift, hyp.region.R_align)
-        R, t = self._refine(R, t, frame, REFINE_SCHEDULE[: self._params.pose.refine_iterations])
-        return Candidate(self._score(R, t, frame), R, t, hyp)
+        first = [pose.pose_from_similarity(g.view_rotations[h.view], g.model_center, h.scale, h.phi, h.shift,
+                                           h.region.R_align) for h in hypotheses]
+        R, t = self._refine(np.array([R for R, _ in first]), np.array([t for _, t in first]), frame,
+                            REFINE_SCHEDULE[: self._params.pose.refine_iterations])
+        return [Candidate(self._score(R[j], t[j], frame), R[j], t[j], h) for j, h in enumerate(hypotheses)]
 
     def _climb(self, start: "Candidate", frame: "Frame") -> "Candidate":
         """Hill-climb the score over neighbouring views of the aspect graph.
 
         A hypothesis from a view 10-30 degrees off refines into a nearby local optimum.
-        Each step turns the pose so that the camera sees the part along one of the
+        Each step turns the pose so that the camera sees the part along each of the
         current view's graph neighbours (keeping the part's centre where it is), refines
-        that briefly, and moves to the best-scoring neighbour while the score improves by
-        more than float noise.
+        those turned poses briefly (together: one batch), and moves to the best-scoring
+        neighbour while the score improves by more than float noise.
         """
         g, best = self.graph, start
         for _ in range(self._params.pose.view_search_steps):
             here = self._nearest_view(best.R, best.t)
             center = best.R @ g.model_center + best.t
+            R = np.array([best.R @ rotation_between(g.view_directions[neighbour], g.view_directions[here])
+                          for neighbour in self._views.neighbours[here]])
+            R, t = self._refine(R, center - R @ g.model_center, frame, REFINE_SCHEDULE[1:3])
             improved = best
-            for neighbour in self._views.neighbours[here]:
-                turn = rotation_between(g.view_directions[neighbour], g.view_directions[here])
-                R = best.R @ turn
-                R, t = self._refine(R, center - R @ g.model_center, frame, REFINE_SCHEDULE[1:3])
-                score = self._score(R, t, frame)
+            for R_j, t_j in zip(R, t):
+                score = self._score(R_j, t_j, frame)
                 if score > improved.score + CLIMB_MIN_GAIN:
-                    improved = Candidate(score, R, t, best.hypothesis)
+                    improved = Candidate(score, R_j, t_j, best.hypothesis)
             if improved is best:
                 break
             best = improved
-        R, t = self._refine(best.R, best.t, frame, REFINE_SCHEDULE[3:4])
-        score = self._score(R, t, frame)
-        return Candidate(score, R, t, best.hypothesis) if score >= best.score else best
+        R, t = self._refine(best.R[None], best.t[None], frame, REFINE_SCHEDULE[3:4])
+        score = self._score(R[0], t[0], frame)
+        return Candidate(score, R[0], t[0], best.hypothesis) if score >= best.score else best
 
-    def _refine(self, R, t, frame: "Frame", schedule) -> tuple[np.ndarray, np.ndarray]:
-        """Re-associate the visible model edges with image lines and refine, round by round."""
+    def _refine(self, R: np.ndarray, t: np.ndarray, frame: "Frame", schedule) -> tuple[np.ndarray, np.ndarray]:
+        """Re-associate the visible model edges with image lines and refine, round by round,
+        for B poses R (B, 3, 3), t (B, 3) at once (``pose.refine_poses``: per-call overhead,
+        not arithmetic, is the cost). A pose behind the camera is left where it is."""
         g, tolerance = self.graph, self._params.pose.inlier_pixels / frame.focal
+        R, t = np.array(R, dtype=float), np.array(t, dtype=float)
+        live = np.ones(len(R), bool)
         for factor in schedule:
-            if t[2] <= 0:
+            live &= t[:, 2] > 0
+            which = np.nonzero(live)[0]
+            if len(which) == 0:
                 break
-            model_3d = g.seg_3d[self._visible_segments(R, t)]
-            matches = pose.associate(model_3d, R, t, frame.segments_n, factor * tolerance)
-            R, t = pose.refine_pose(R, t, matches, tolerance, ROUGH_ITERATIONS if factor > 1 else FINE_ITERATIONS)
+            views = self._nearest_views(R[which], t[which])
+            lo, counts = g.seg_offsets[views], g.seg_offsets[views + 1] - g.seg_offsets[views]
+            spans = np.concatenate([[0], np.cumsum(counts)])
+            model_3d = g.seg_3d[np.arange(spans[-1]) - np.repeat(spans[:-1] - lo, counts)]
+            mi, ii, _ = pose.associate_poses(model_3d, spans, R[which], t[which], frame.segments_n, factor * tolerance)
+            pairs = np.searchsorted(mi, spans)  # mi ascends, so each pose's pairs are one span
+            R[which], t[which] = pose.refine_poses(R[which], t[which], model_3d[mi], frame.segments_n[ii], pairs,
+                                                   tolerance, ROUGH_ITERATIONS if factor > 1 else FINE_ITERATIONS)
         return R, t
 
     def _score(self, R, t, frame: "Frame") -> float:
@@ -377,11 +390,14 @@ class Estimator:
         return 2 * confirmed * explained / max(confirmed + explained, 1e-12)
 
     def _nearest_view(self, R: np.ndarray, t: np.ndarray) -> int:
-        """The graph view nearest to the direction the camera sees the part from
-        (``geometry.direction_to`` without its normalisation, which cannot change the largest
-        product; this runs thousands of times per image)."""
+        """The graph view nearest to the direction the camera sees the part from."""
+        return int(self._nearest_views(R[None], t[None])[0])
+
+    def _nearest_views(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """``_nearest_view`` of B poses (B, 3, 3), (B, 3): ``geometry.direction_to``
+        without its normalisation, which cannot change the largest product."""
         g = self.graph
-        return int(np.argmax(g.view_directions @ (g.model_center + R.T @ t)))
+        return np.argmax(g.view_directions @ (g.model_center + np.einsum("bji,bj->bi", R, t)).T, axis=0)
 
     def _visible_segments(self, R: np.ndarray, t: np.ndarray) -> slice:
         """Segments visible from the graph view nearest to the pose's viewing direction."""

@@ -161,29 +161,54 @@ def _cos_deg(angle_deg: float) -> float:
     return float(np.cos(np.radians(angle_deg)))
 
 
-def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: float,
-                iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """Robust Gauss-Newton on the end-point-to-line distances (normalised units).
+def associate_poses(model_3d: np.ndarray, spans: np.ndarray, R: np.ndarray, t: np.ndarray,
+                    image_2d: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``nearest_lines`` for B poses R (B, 3, 3), t (B, 3) at once: model segments
+    ``spans[b]:spans[b + 1]`` belong to pose b. The pairing is decided segment by segment,
+    so one call does the work of B; each pose projects its own segments as ``project``."""
+    if len(model_3d) == 0 or len(image_2d) == 0:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    projected = np.empty(model_3d.shape[:-1] + (2,))
+    for b, (lo, hi) in enumerate(zip(spans[:-1], spans[1:])):
+        projected[lo:hi] = project(model_3d[lo:hi], R[b], t[b])
+    return nearest_lines(projected, image_2d, tolerance)
+
+
+def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: np.ndarray, spans: np.ndarray,
+                 f_scale: float, iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Robust Gauss-Newton on the end-point-to-line distances (normalised units), for B
+    poses R (B, 3, 3), t (B, 3) at once: pairs (model segment, image line)
+    ``spans[b]:spans[b + 1]`` belong to pose b. Returns new arrays.
 
     Iteratively reweighted least squares with Huber weights (``f_scale`` is the Huber
     threshold), an analytic Jacobian and the update R <- exp(w) R, t <- t + dt: six
-    unknowns, so each step is a 6x6 solve; far cheaper than a generic solver with numeric
-    derivatives, which dominated the run time. It runs hundreds of times per image on
-    about a hundred points, so numpy's per-call overhead is the cost: arrays are laid out
-    one row per coordinate, the Jacobian is written in place with the cross product written
-    out, and the 6x6 solve and the rotation go to OpenCV (np.cross, np.linalg.solve and scipy's Rotation took most of
-    the time).
+    unknowns, so each step is a 6x6 solve per pose; far cheaper than a generic solver with
+    numeric derivatives. It runs for every hypothesis and every neighbouring view the
+    climb tries, on about a hundred points each, so numpy's per-call overhead is the cost:
+    the element-wise work of all poses runs as one set of array operations (one column
+    per end point, the cross product written out); only the products that sum over a
+    pose's points, the 6x6 solves (OpenCV's Cholesky) and the rotations go pose by pose,
+    with the very operations a single pose would use, so a pose refines to the same bits
+    alone or in a batch. A pose with fewer than 3 pairs stays where it is; a pose stops
+    once its step vanishes.
     """
-    if len(matches.model_3d) < 3:
-        return R, t
-    lines = line_equations(matches.image_2d)  # (K, 3)
+    R, t = np.array(R, dtype=float), np.array(t, dtype=float)
+    lines = line_equations(image_2d)  # (K, 3)
     nx, ny, offsets = np.repeat(lines, 2, axis=0).T
-    points = matches.model_3d.reshape(-1, 3).T  # (3, N)
+    points = model_3d.reshape(-1, 3).T  # (3, N)
+    ends = 2 * np.asarray(spans)  # end point columns of each pose
+    active = np.diff(spans) >= 3
     jac = np.empty((6, points.shape[1]))  # d residual / d (w, dt), one column per end point
-    rows = jac[3:]  # g below, written in place: every whole-array operation costs
+    rows = jac[3:]
+    rotated = np.empty_like(points)
+    moved = np.empty_like(points)
     for _ in range(iterations):
-        rotated = R @ points
-        x, y, z = rotated + t[:, None]
+        if not active.any():
+            break
+        for b, (lo, hi) in enumerate(zip(ends[:-1], ends[1:])):
+            rotated[:, lo:hi] = R[b] @ points[:, lo:hi]
+            moved[:, lo:hi] = rotated[:, lo:hi] + t[b][:, None]
+        x, y, z = moved
         z = np.maximum(z, 1e-9)
         along_normal = nx * (x / z) + ny * (y / z)
         residual = along_normal + offsets
@@ -198,16 +223,18 @@ def refine_pose(R: np.ndarray, t: np.ndarray, matches: LineMatches, f_scale: flo
         np.subtract(r2 * g0, r0 * g2, out=jac[1])
         np.subtract(r0 * g1, r1 * g0, out=jac[2])
         weighted = jac * (f_scale / np.maximum(np.abs(residual), f_scale))  # Huber: 1 within f_scale
-        hessian = weighted @ jac.T
-        hessian.flat[::7] += 1e-6 * hessian.trace() / 6.0  # damping: degenerate line sets
-        solved, step = cv2.solve(hessian, -(weighted @ residual), flags=cv2.DECOMP_CHOLESKY)
-        step = step[:, 0]
-        if not solved or not np.isfinite(step).all():
-            break
-        R = cv2.Rodrigues(step[:3])[0] @ R
-        t = t + step[3:]
-        if step @ step < 1e-14:
-            break
+        for b in np.nonzero(active)[0]:
+            lo, hi = ends[b], ends[b + 1]
+            hessian = weighted[:, lo:hi] @ jac[:, lo:hi].T
+            hessian.flat[::7] += 1e-6 * hessian.trace() / 6.0  # damping: degenerate line sets
+            solved, step = cv2.solve(hessian, -(weighted[:, lo:hi] @ residual[lo:hi]), flags=cv2.DECOMP_CHOLESKY)
+            step = step[:, 0]
+            if not solved or not np.isfinite(step).all():
+                active[b] = False
+                continue
+            R[b] = cv2.Rodrigues(step[:3])[0] @ R[b]
+            t[b] = t[b] + step[3:]
+            active[b] = step @ step >= 1e-14
     return R, t
 
 

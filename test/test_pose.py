@@ -12,19 +12,54 @@ def random_segments(rng, n, scale=1.0):
     return rng.uniform(-1, 1, size=(n, 2, 2)) * scale
 
 
-def test_refine_pose_recovers_the_pose_from_exact_line_matches():
+def exact_line_matches(rng, n, R, t):
+    """n model segments and the image lines they project onto under (R, t), lines longer
+    than the projected edges: only the lines matter."""
+    model_3d = rng.uniform(-0.05, 0.05, size=(n, 2, 3))
+    image_2d = pose.project(model_3d, R, t)
+    return model_3d, image_2d + np.array([-0.3, 0.3])[None, :, None] * (image_2d[:, 1:] - image_2d[:, :1])
+
+
+def test_refine_poses_recovers_each_pose_of_a_batch_from_exact_line_matches():
     rng = np.random.default_rng(0)
-    model_3d = rng.uniform(-0.05, 0.05, size=(12, 2, 3))
-    R_true = rot_z(0.4) @ cv2.Rodrigues(np.array([0.3, -0.2, 0.1]))[0]
-    t_true = np.array([0.01, -0.02, 0.5])
-    image_2d = pose.project(model_3d, R_true, t_true)
-    # image lines are longer than the projected edges: only the lines matter
-    image_2d = image_2d + np.array([-0.3, 0.3])[None, :, None] * (image_2d[:, 1:] - image_2d[:, :1])
-    matches = pose.LineMatches(model_3d, image_2d, np.arange(12), np.arange(12), np.zeros(12))
-    R0 = cv2.Rodrigues(np.array([0.03, 0.02, -0.02]))[0] @ R_true
-    R, t = pose.refine_pose(R0, t_true + [0.005, -0.003, 0.02], matches, f_scale=0.01, iterations=30)
-    assert np.abs(R - R_true).max() < 1e-8
-    assert np.abs(t - t_true).max() < 1e-8
+    R_true = [rot_z(0.4) @ cv2.Rodrigues(np.array([0.3, -0.2, 0.1]))[0], cv2.Rodrigues(np.array([-1.0, 0.5, 0.2]))[0]]
+    t_true = [np.array([0.01, -0.02, 0.5]), np.array([-0.05, 0.03, 0.8])]
+    pairs = [exact_line_matches(rng, n, R, t) for n, R, t in zip((12, 9), R_true, t_true)]
+    R0 = [cv2.Rodrigues(np.array([0.03, 0.02, -0.02]))[0] @ R for R in R_true]
+    t0 = [t + [0.005, -0.003, 0.02] for t in t_true]
+    # a third pose with only 2 pairs cannot be refined and stays where it is
+    R0.append(np.eye(3)), t0.append(np.array([0.0, 0.0, 1.0]))
+    pairs.append(exact_line_matches(rng, 2, np.eye(3), np.array([0.0, 0.0, 0.9])))
+    spans = np.cumsum([0] + [len(m) for m, _ in pairs])
+    R, t = pose.refine_poses(np.array(R0), np.array(t0), np.concatenate([m for m, _ in pairs]),
+                             np.concatenate([i for _, i in pairs]), spans, f_scale=0.01, iterations=30)
+    assert np.abs(R[:2] - R_true).max() < 1e-8
+    assert np.abs(t[:2] - t_true).max() < 1e-8
+    assert np.array_equal(R[2], np.eye(3)) and np.array_equal(t[2], [0.0, 0.0, 1.0])
+
+
+def test_a_batch_refines_and_associates_each_pose_to_the_same_bits_as_alone():
+    """The estimator's results must not depend on which poses share a batch."""
+    rng = np.random.default_rng(4)
+    R_true = [cv2.Rodrigues(rng.normal(0, 0.5, 3))[0] for _ in range(4)]
+    t_true = [np.array([0.0, 0.0, 0.6]) + rng.normal(0, 0.02, 3) for _ in range(4)]
+    pairs = [exact_line_matches(rng, n, R, t) for n, R, t in zip((7, 15, 4, 11), R_true, t_true)]
+    for m, i in pairs:
+        i += rng.normal(0, 0.002, size=i.shape)  # noisy lines: the poses converge slowly
+    R0 = np.array([cv2.Rodrigues(rng.normal(0, 0.05, 3))[0] @ R for R in R_true])
+    t0 = np.array(t_true) + rng.normal(0, 0.01, (4, 3))
+    model, image = np.concatenate([m for m, _ in pairs]), np.concatenate([i for _, i in pairs])
+    spans = np.cumsum([0] + [len(m) for m, _ in pairs])
+    R, t = pose.refine_poses(R0, t0, model, image, spans, f_scale=0.002, iterations=3)
+    found = pose.associate_poses(model, spans, R0, t0, image, 0.01)
+    for b, (m, i) in enumerate(pairs):
+        R_b, t_b = pose.refine_poses(R0[b:b + 1], t0[b:b + 1], m, i, np.array([0, len(m)]), 0.002, 3)
+        assert np.array_equal(R_b[0], R[b]) and np.array_equal(t_b[0], t[b])
+        alone = pose.associate(m, R0[b], t0[b], image, 0.01)
+        own = (found[0] >= spans[b]) & (found[0] < spans[b + 1])
+        assert np.array_equal(found[0][own] - spans[b], alone.model_index)
+        assert np.array_equal(found[1][own], alone.image_index)
+        assert np.array_equal(found[2][own], alone.distances)
 
 
 def reference_nearest_lines(model_2d, image_2d, tolerance, max_angle_deg=10.0):
