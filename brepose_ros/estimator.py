@@ -40,7 +40,7 @@ class Estimate:
 
     ``R``/``t`` are T_cam_model (metres) or None when the part was not found. ``score`` in
     [0, 1] weighs how well projected model edges and image edge pixels explain each other
-    (``Estimator._score``); ``error_ratio`` is the share of the chosen view's model edges
+    (``Estimator._scores``); ``error_ratio`` is the share of the chosen view's model edges
     outside the nearest group of edge pairs at the final pose (CONVENTIONS.md; 0 best,
     1 worst): ``n_matched`` of them found an image line within a loose reach, ``n_nearest``
     lie within ``pose.inlier_pixels`` of it.
@@ -316,7 +316,8 @@ class Estimator:
                                            h.region.R_align) for h in hypotheses]
         R, t = self._refine(np.array([R for R, _ in first]), np.array([t for _, t in first]), frame,
                             REFINE_SCHEDULE[: self._params.pose.refine_iterations])
-        return [Candidate(self._score(R[j], t[j], frame), R[j], t[j], h) for j, h in enumerate(hypotheses)]
+        scores = self._scores(R, t, frame)
+        return [Candidate(float(scores[j]), R[j], t[j], h) for j, h in enumerate(hypotheses)]
 
     def _climb(self, start: "Candidate", frame: "Frame") -> "Candidate":
         """Hill-climb the score over neighbouring views of the aspect graph.
@@ -335,15 +336,14 @@ class Estimator:
                           for neighbour in self._views.neighbours[here]])
             R, t = self._refine(R, center - R @ g.model_center, frame, REFINE_SCHEDULE[1:3])
             improved = best
-            for R_j, t_j in zip(R, t):
-                score = self._score(R_j, t_j, frame)
+            for R_j, t_j, score in zip(R, t, self._scores(R, t, frame)):
                 if score > improved.score + CLIMB_MIN_GAIN:
-                    improved = Candidate(score, R_j, t_j, best.hypothesis)
+                    improved = Candidate(float(score), R_j, t_j, best.hypothesis)
             if improved is best:
                 break
             best = improved
         R, t = self._refine(best.R[None], best.t[None], frame, REFINE_SCHEDULE[3:4])
-        score = self._score(R[0], t[0], frame)
+        score = float(self._scores(R, t, frame)[0])
         return Candidate(score, R[0], t[0], best.hypothesis) if score >= best.score else best
 
     def _refine(self, R: np.ndarray, t: np.ndarray, frame: "Frame", schedule) -> tuple[np.ndarray, np.ndarray]:
@@ -368,8 +368,9 @@ class Estimator:
                                                    tolerance, ROUGH_ITERATIONS if factor > 1 else FINE_ITERATIONS)
         return R, t
 
-    def _score(self, R, t, frame: "Frame") -> float:
-        """F-measure of two shares on the image's edge pixels (``pose.EdgeEvidence``).
+    def _scores(self, R: np.ndarray, t: np.ndarray, frame: "Frame") -> np.ndarray:
+        """For B poses (B, 3, 3), (B, 3): F-measure of two shares on the image's edge pixels
+        (``pose.EdgeEvidence``; the first share of all poses in one call).
 
         Of the projected visible model edges, the share an image edge confirms; of the
         image edges inside the projected part's outline, the share a model edge explains.
@@ -378,16 +379,27 @@ class Estimator:
         ``pose.min_size_pixels`` scores 0. Neither share depends on the region a
         hypothesis came from, so hypotheses of all regions compare.
         """
-        if t[2] <= 0:
-            return 0.0
-        model_px = pose.project_pixels(self.graph.seg_3d[self._visible_segments(R, t)], R, t, frame.camera)
-        extent = np.ptp(model_px.reshape(-1, 2), axis=0) if len(model_px) else np.zeros(2)
-        if np.hypot(*extent) < self._params.pose.min_size_pixels:
-            return 0.0  # a part this small is not recognisable, and a tiny pose fits any edges
+        scored, drawn = [], []
+        for b in range(len(R)):
+            if t[b][2] <= 0:
+                continue
+            model_px = pose.project_pixels(self.graph.seg_3d[self._visible_segments(R[b], t[b])], R[b], t[b],
+                                           frame.camera)
+            extent = np.ptp(model_px.reshape(-1, 2), axis=0) if len(model_px) else np.zeros(2)
+            if np.hypot(*extent) < self._params.pose.min_size_pixels:
+                continue  # a part this small is not recognisable, and a tiny pose fits any edges
+            scored.append(b)
+            drawn.append(model_px)
+        scores = np.zeros(len(R))
+        if not scored:
+            return scores
         tolerance = self._params.pose.inlier_pixels
-        confirmed = frame.evidence.support(model_px, tolerance)
-        explained = frame.evidence.explained(model_px, tolerance)
-        return 2 * confirmed * explained / max(confirmed + explained, 1e-12)
+        spans = np.cumsum([0] + [len(m) for m in drawn])
+        confirmed = frame.evidence.supports(np.concatenate(drawn), spans, tolerance)
+        for b, c, model_px in zip(scored, confirmed, drawn):
+            explained = frame.evidence.explained(model_px, tolerance)
+            scores[b] = 2 * c * explained / max(c + explained, 1e-12)
+        return scores
 
     def _nearest_view(self, R: np.ndarray, t: np.ndarray) -> int:
         """The graph view nearest to the direction the camera sees the part from."""

@@ -294,8 +294,12 @@ class EdgeEvidence:
         return (np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi) / np.pi * self.BINS).astype(int) % self.BINS
 
     def support(self, model_px: np.ndarray, tolerance_px: float) -> float:
-        if len(model_px) == 0:
-            return 0.0
+        return float(self.supports(model_px, np.array([0, len(model_px)]), tolerance_px)[0])
+
+    def supports(self, model_px: np.ndarray, spans: np.ndarray, tolerance_px: float) -> np.ndarray:
+        """``support`` of several poses at once, segments ``spans[b]:spans[b + 1]`` of
+        ``model_px`` belonging to pose b: the look-ups of all poses run together, each
+        pose's sums separately (the same sums as alone)."""
         if tolerance_px not in self._near_like:
             # one pixel of False around the image: points outside it are clipped onto that
             # border instead of being masked out (a mask costs several array operations)
@@ -307,13 +311,19 @@ class EdgeEvidence:
         lengths = np.sqrt((delta * delta).sum(axis=1))
         counts = np.clip(np.ceil(lengths / 2.0).astype(int), 1, 2000)
         seg_idx = np.repeat(np.arange(len(model_px)), counts)
-        offsets = np.arange(len(seg_idx)) - np.repeat(np.cumsum(counts) - counts, counts)
+        ends = np.cumsum(counts)
+        offsets = np.arange(len(seg_idx)) - np.repeat(ends - counts, counts)
         frac = (offsets + 0.5) / counts[seg_idx]
         pts = model_px[:, 0][seg_idx] + frac[:, None] * delta[seg_idx]
         weight = (lengths / counts)[seg_idx]
         x, y = np.clip(np.rint(pts).astype(int) + 1, 0, [w + 1, h + 1]).T
         near = self._near_like[tolerance_px][self._bins_of(delta)[seg_idx], y, x]
-        return float(weight[near].sum() / max(weight.sum(), 1e-12))
+        out = np.zeros(len(spans) - 1)
+        point_spans = np.concatenate([[0], ends])[spans]
+        for b, (lo, hi) in enumerate(zip(point_spans[:-1], point_spans[1:])):
+            if hi > lo:
+                out[b] = weight[lo:hi][near[lo:hi]].sum() / max(weight[lo:hi].sum(), 1e-12)
+        return out
 
     @classmethod
     def grown_outline(cls, points: np.ndarray) -> np.ndarray:

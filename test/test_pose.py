@@ -182,3 +182,11 @@ def test_edge_evidence_matches_the_distance_transform_definitions(evidence_image
             reference_support(edge_map, gray, model_px, tolerance), abs=1e-12)
         assert evidence.explained(model_px, tolerance) == pytest.approx(
             reference_explained(edge_map, model_px, tolerance), abs=1e-12)
+
+
+def test_supports_of_a_batch_are_each_pose_alone(evidence_image):
+    edge_map, gray, models = evidence_image
+    evidence = pose.EdgeEvidence(edge_map, gray)
+    spans = np.cumsum([0] + [len(m) for m in models])
+    together = evidence.supports(np.concatenate(models), spans, 2.0)
+    assert [float(s) for s in together] == [evidence.support(m, 2.0) for m in models]
