@@ -42,11 +42,6 @@ def undistort_segments(segments_px: np.ndarray, camera: Camera) -> np.ndarray:
     return out.reshape(-1, 2, 2)
 
 
-def to_pixels(normalised: np.ndarray, camera: Camera) -> np.ndarray:
-    """Ideal (distortion-free) pixel coordinates of normalised camera coordinates."""
-    return np.asarray(normalised) * [camera.fx, camera.fy] + [camera.cx, camera.cy]
-
-
 def virtual_alignment(center_normalised: np.ndarray) -> np.ndarray:
     """R_align: turns the virtual camera's optical axis onto the ray through the centre."""
     ray = np.array([center_normalised[0], center_normalised[1], 1.0])
