@@ -147,10 +147,7 @@ class ViewLibrary:
         """The (view, rotation) pairs closest to the region by oriented chamfer distance."""
         phis = matching.rotation_candidates(self.orientation_histograms,
                                             region.features.orientation_histogram, p.rotation_candidates)
-        scores = self.prefilter.scores(region.distance_maps, phis).ravel()
-        count = min(p.shortlist_size, len(scores))
-        best = np.argpartition(scores, count - 1)[:count]
-        views, which = np.unravel_index(best, phis.shape)
+        views, which = self.prefilter.shortlist(region.distance_maps, phis, p.shortlist_size)
         return [(int(v), float(phis[v, r])) for v, r in zip(views, which)]
 
 

@@ -374,6 +374,8 @@ class ChamferPrefilter:
     EXTENT = 2.0
     TRUNCATE = 0.25
     BLOCK = 256
+    COARSE_STRIDE = 4
+    COARSE_KEEP = 16
 
     def __init__(self, view_features: list[SegmentFeatures], points_per_view: int = 32):
         pts, ori = [], []
@@ -395,8 +397,27 @@ class ChamferPrefilter:
             maps[b] = cv2.distanceTransform(canvas, cv2.DIST_L2, 3) * cell
         return np.minimum(maps, self.TRUNCATE)
 
-    def scores(self, maps: np.ndarray, phis: np.ndarray) -> np.ndarray:
-        """(V, R) mean truncated oriented distance of view v turned by phis[v, r].
+    def shortlist(self, maps: np.ndarray, phis: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """Views and rotation indices (in no particular order) of the ``count`` (view,
+        rotation) pairs with the lowest score.
+
+        Two stages: every pair is scored on every ``COARSE_STRIDE``-th of its points (still
+        spread along the whole view), and only the ``COARSE_KEEP`` x ``count`` best go on to
+        the full score. At 10,000 views this is what keeps the pre-filter affordable.
+        """
+        coarse = self.scores(maps, phis, slice(None, None, self.COARSE_STRIDE)).ravel()
+        keep = min(len(coarse), self.COARSE_KEEP * count)
+        pairs = np.argpartition(coarse, keep - 1)[:keep] if keep < len(coarse) else np.arange(len(coarse))
+        views, which = np.unravel_index(pairs, phis.shape)
+        fine = self._block_scores(maps, self.points[views], self.orientations[views],
+                                  np.mod(phis[views, which].astype(np.float32), np.float32(2 * np.pi))[:, None])[:, 0]
+        count = min(count, len(fine))
+        best = np.argpartition(fine, count - 1)[:count]
+        return views[best], which[best]
+
+    def scores(self, maps: np.ndarray, phis: np.ndarray, points: slice = slice(None)) -> np.ndarray:
+        """(V, R) mean truncated oriented distance of view v turned by phis[v, r], over the
+        view's ``points`` (all by default).
 
         Every step is over V x R x P points (10^5 to 10^6), so it runs in blocks of
         ``BLOCK`` views, whose temporaries stay in the cache, and the slow steps are
@@ -408,7 +429,8 @@ class ChamferPrefilter:
         out = np.empty(phis.shape, np.float32)
         for lo in range(0, len(phis), self.BLOCK):
             views = slice(lo, lo + self.BLOCK)
-            out[views] = self._block_scores(maps, self.points[views], self.orientations[views], phis[views])
+            out[views] = self._block_scores(maps, self.points[views, points], self.orientations[views, points],
+                                            phis[views])
         return out
 
     def _block_scores(self, maps, points, orientations, phis):

@@ -244,3 +244,25 @@ def test_prefilter_scores_match_a_plain_gather():
     assert np.array_equal(prefilter.scores(maps, phis), want)
     # any angle, not only those in [0, 2 pi) that rotation_candidates gives
     assert np.allclose(prefilter.scores(maps, phis - 4 * np.pi), want, atol=1e-6)
+
+
+def test_prefilter_shortlist_keeps_the_best_pairs_of_the_full_score():
+    """The coarse stage only narrows the field: among 400 views the region's own view comes
+    first, and what is returned is the full score's best of the pairs kept."""
+    rng = np.random.default_rng(12)
+    shapes = [random_shape(rng, 10) * 1.5 for _ in range(400)]
+    views = [matching.describe(s) for s in shapes]
+    prefilter = matching.ChamferPrefilter(views)
+    region = matching.describe(similarity(shapes[123], 1.0, 0.7, np.zeros(2)))
+    maps = prefilter.distance_maps(region)
+    phis = matching.rotation_candidates(np.stack([v.orientation_histogram for v in views]),
+                                        region.orientation_histogram, 2)
+    full = prefilter.scores(maps, phis)
+    views_kept, which = prefilter.shortlist(maps, phis, 5)
+    assert len(views_kept) == 5 and views_kept[np.argmin(full[views_kept, which])] == 123
+    assert full[123].min() == full.min()
+    # with a coarse stage that keeps everything, the shortlist is the full score's best 5
+    keep_all = matching.ChamferPrefilter(views)
+    keep_all.COARSE_KEEP = full.size
+    v_all, w_all = keep_all.shortlist(maps, phis, 5)
+    assert sorted(full[v_all, w_all]) == sorted(np.sort(full.ravel())[:5])
