@@ -383,10 +383,11 @@ class Estimator:
         hypothesis came from, so hypotheses of all regions compare.
         """
         scored, drawn = [], []
-        for b in range(len(R)):
+        g = self.graph
+        for b, view in enumerate(self._nearest_views(R, t)):
             if t[b][2] <= 0:
                 continue
-            model_px = pose.project_pixels(self.graph.seg_3d[self._visible_segments(R[b], t[b])], R[b], t[b],
+            model_px = pose.project_pixels(g.seg_3d[g.seg_offsets[view]:g.seg_offsets[view + 1]], R[b], t[b],
                                            frame.camera)
             extent = np.ptp(model_px.reshape(-1, 2), axis=0) if len(model_px) else np.zeros(2)
             if np.hypot(*extent) < self._params.pose.min_size_pixels:
