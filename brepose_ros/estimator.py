@@ -1,10 +1,10 @@
 """Stage 6: the online pipeline behind one call: image + intrinsics in, metric 6-DoF pose out.
 
     image --image_edges--> segments (pixels) + Canny edge pixels
-      --undistort--> segments in normalised camera coordinates
+      --undistort--> segments and edge pixels in normalised camera coordinates
       --regions--> whole image and clusters of touching segments
       --virtual camera + metric_space--> a normalised edge set per region
-      --chamfer pre-filter--> shortlist of (view, rotation) per region
+      --chamfer pre-filter on the region's edge pixels--> shortlist of (view, rotation)
       --Kuhn-Munkres + similarity + 2D ICP--> hypotheses ranked by two-way edge coverage
       --pose--> first metric pose per hypothesis --refine--> refined poses, scored on edge pixels
       --hill-climb over neighbouring views--> best pose; found if its score passes pose.min_score
@@ -22,6 +22,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from . import matching, pose
@@ -95,10 +96,32 @@ class Frame:
     segments_n: np.ndarray  # undistorted, normalised camera coordinates
     camera: Camera
     evidence: pose.EdgeEvidence
+    edge_points_n: np.ndarray  # evidence.pixels, undistorted and normalised
+
+    @classmethod
+    def of(cls, segments_px: np.ndarray, edge_map: np.ndarray, gray: np.ndarray, camera: Camera) -> "Frame":
+        evidence = pose.EdgeEvidence(edge_map, gray)
+        return cls(segments_px, pose.undistort_segments(segments_px, camera), camera, evidence,
+                   pose.undistort_points(evidence.pixels, camera))
 
     @property
     def focal(self) -> float:
         return (self.camera.fx + self.camera.fy) / 2.0
+
+    def pixels_around(self, segments_px: np.ndarray) -> np.ndarray:
+        """Mask of the edge pixels inside the segments' convex hull grown by
+        ``REGION_GROWTH`` about its centre."""
+        hull = pose.convex_hull(segments_px)
+        center = hull.mean(axis=0)
+        hull = center + REGION_GROWTH * (hull - center)
+        x0, y0 = np.floor(hull.min(axis=0)).astype(int)
+        x1, y1 = np.ceil(hull.max(axis=0)).astype(int) + 1
+        mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        cv2.fillConvexPoly(mask, np.round(hull - [x0, y0]).astype(np.int32), 1)
+        x, y = self.evidence.pixels[:, 0] - x0, self.evidence.pixels[:, 1] - y0
+        inside = (x >= 0) & (x < x1 - x0) & (y >= 0) & (y < y1 - y0)
+        inside[inside] = mask[y[inside], x[inside]] > 0
+        return inside
 
 
 @dataclass
@@ -197,15 +220,14 @@ class Estimator:
         not_found = Estimate(False, None, None, 0.0, 1.0, -1, len(segments_px), 0, 0, timings=timings)
         if len(segments_px) < MIN_REGION_SEGMENTS:
             return not_found
-        segments_n = pose.undistort_segments(segments_px, camera)
-        regions = self._regions(segments_px, segments_n, camera)
+        frame = Frame.of(segments_px, edges.edge_map, edges.gray, camera)
+        regions = self._regions(frame)
         jobs = [(region, view, phi) for region in regions for view, phi in self._views.shortlist(region, p.matching)]
         clock = _lap(timings, "prefilter", clock)
         hypotheses = self._match_all(jobs)
         clock = _lap(timings, "matching", clock)
         if not hypotheses:
             return not_found
-        frame = Frame(segments_px, segments_n, camera, pose.EdgeEvidence(edges.edge_map, edges.gray))
         candidates = sorted(self._verify(best_per_region(hypotheses, p.matching.hypotheses), frame),
                             key=lambda c: -c.score)
         starts = distinct_poses(candidates, p.pose.climb_candidates, self.graph.model_diameter)
@@ -226,7 +248,7 @@ class Estimator:
         lengths = np.linalg.norm(np.diff(pose.project_pixels(visible, best.R, best.t, camera), axis=1), axis=2)[:, 0]
         visible = visible[lengths >= p.edges.min_length_fraction * np.hypot(camera.width, camera.height)]
         tolerance = p.pose.inlier_pixels / frame.focal
-        pairs = pose.associate(visible, best.R, best.t, segments_n, ERROR_RATIO_REACH * tolerance)
+        pairs = pose.associate(visible, best.R, best.t, frame.segments_n, ERROR_RATIO_REACH * tolerance)
         nearest = pairs.distances <= tolerance
         error_ratio = 1.0 - float(nearest.sum()) / max(len(visible), 1)
         return Estimate(found, best.R if found else None, best.t if found else None, best.score, error_ratio,
@@ -235,30 +257,34 @@ class Estimator:
                         pose.project_pixels(pairs.model_3d[nearest], best.R, best.t, camera), timings,
                         int(best.hypothesis.view))
 
-    def _regions(self, segments_px: np.ndarray, segments_n: np.ndarray, camera: Camera) -> list[Region]:
+    def _regions(self, frame: Frame) -> list[Region]:
         """The whole image, then clusters of touching segments (off-centre part among clutter)."""
         p = self._params.matching
-        groups = [np.arange(len(segments_px))]
-        groups += cluster_segments(segments_px, gap=0.03 * np.hypot(camera.width, camera.height))
+        groups = [np.arange(len(frame.segments_px))]
+        groups += cluster_segments(frame.segments_px, gap=0.03 * np.hypot(frame.camera.width, frame.camera.height))
         regions = []
         for indices in groups[: p.max_regions]:
             if len(indices) >= MIN_REGION_SEGMENTS:
-                regions.append(self._region(indices, segments_n))
+                regions.append(self._region(indices, frame))
         return [r for r in regions if r is not None]
 
-    def _region(self, indices: np.ndarray, segments_n: np.ndarray) -> Region | None:
+    def _region(self, indices: np.ndarray, frame: Frame) -> Region | None:
+        """The region's segments on the virtual camera centred on them, normalised; and the
+        pre-filter's distance maps of the edge pixels around them, normalised alike."""
         p = self._params.matching
-        indices = indices[matching.longest(segments_n[indices], p.max_image_segments)]
+        indices = indices[matching.longest(frame.segments_n[indices], p.max_image_segments)]
         try:
-            center = normalisation_of(segments_n[indices]).center
+            center = normalisation_of(frame.segments_n[indices]).center
             R_align = pose.virtual_alignment(center)
-            virtual = pose.to_virtual(segments_n[indices], R_align)
+            virtual = pose.to_virtual(frame.segments_n[indices], R_align)
             norm = normalisation_of(virtual)
         except ValueError:
             return None
         features = matching.describe(norm.apply(virtual))
+        around = frame.pixels_around(frame.segments_px[indices])
+        pixels = norm.apply(pose.to_virtual(frame.edge_points_n[around], R_align))
         return Region(indices, R_align, norm.center, norm.scale, features,
-                      self._views.prefilter.distance_maps(features))
+                      self._views.prefilter.distance_maps(pixels, frame.evidence.directions[around]))
 
     def _match_all(self, jobs: list[tuple[Region, int, float]]) -> list[Hypothesis]:
         """Hypotheses of the jobs, in job order. Consecutive jobs of one region run together
@@ -423,6 +449,10 @@ class Estimator:
 
 #: fewer segments than this cannot pin down a view, in a region or in a whole image
 MIN_REGION_SEGMENTS = 4
+
+#: a region's edge pixels are those inside the convex hull of its segments grown by this
+#: factor: rounded outlines and corners, which give no segment, bulge out of that hull
+REGION_GROWTH = 1.15
 
 #: refined poses closer than this (rotation, and translation in part diameters) are one pose
 SAME_POSE_DEG = 3.0

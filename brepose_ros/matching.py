@@ -23,7 +23,12 @@ Where this goes beyond the paper, and why:
 * Pre-filter. Kuhn-Munkres is cubic, so it does not run for every view: points sampled
   along every view's segments, turned by each view's candidate rotations, look up an
   oriented distance map of the image region (all views at once, ``ChamferPrefilter``);
-  the closest (view, rotation) pairs go on to the assignment.
+  the closest (view, rotation) pairs go on to the assignment. The map is drawn from the
+  region's Canny edge pixels, not from its line segments: holes, fillets and rounded
+  outlines give no segment but do give edge pixels, and the view's chords of those curves
+  then find their counterpart. Measured on bench scenes (24 + 12 images per part, seeds
+  100 and 200): clean successes 111 -> 119 of 144 (the SO-ARM100 base attachment, full of
+  holes, 21 -> 28 of 36), clutter 50 -> 59 and 30 % occlusion 1 -> 4 of 96.
 * The matched pairs also give a similarity transform (Procrustes on the nearest pairs),
   which corrects the image normalisation that clutter and occlusion bias.
 * Ranking. After that alignment, views are ranked by how much of the view's and of the
@@ -363,10 +368,10 @@ class ChamferPrefilter:
     """Oriented chamfer distance of every view, at its candidate rotations, to a region.
 
     Views are sampled once as ``points_per_view`` points along their normalised segments
-    (length-weighted). A region is rasterised once into ``ORIENT_BINS`` distance maps, one
-    per edge direction, over the normalised square [-EXTENT, EXTENT]^2. Scoring every
-    (view, rotation) is then a gather over a (V, R, P) index array: a few milliseconds for
-    thousands of views.
+    (length-weighted). A region's oriented edge points (normalised, e.g. its edge pixels)
+    are rasterised once into ``ORIENT_BINS`` distance maps, one per edge direction, over
+    the normalised square [-EXTENT, EXTENT]^2. Scoring every (view, rotation) is then a
+    gather over a (V, R, P) index array: a few milliseconds for thousands of views.
     """
 
     ORIENT_BINS = 6
@@ -380,22 +385,24 @@ class ChamferPrefilter:
     def __init__(self, view_features: list[SegmentFeatures], points_per_view: int = 32):
         pts, ori = [], []
         for f in view_features:
-            p, o = _spread_points(f.segments, points_per_view)
+            p, o = spread_points(f.segments, points_per_view)
             pts.append(p)
             ori.append(o)
         self.points = np.stack(pts).astype(np.float32)  # (V, P, 2)
         self.orientations = np.stack(ori).astype(np.float32)  # (V, P) modulo pi
 
-    def distance_maps(self, region: SegmentFeatures) -> np.ndarray:
+    def distance_maps(self, points: np.ndarray, orientations: np.ndarray) -> np.ndarray:
+        """(ORIENT_BINS, GRID, GRID) truncated distance to the region's points (N, 2) of each
+        direction bin (orientations modulo pi); a point falls in the cell the gather of
+        ``scores`` reads, and points outside the square are left out."""
         cell = 2.0 * self.EXTENT / self.GRID
-        maps = np.empty((self.ORIENT_BINS, self.GRID, self.GRID), np.float32)
-        bins = (region.orientations / np.pi * self.ORIENT_BINS).astype(int) % self.ORIENT_BINS
-        ends = np.round((region.segments + self.EXTENT) / cell).astype(np.int32)
-        for b in range(self.ORIENT_BINS):
-            canvas = np.full((self.GRID, self.GRID), 255, np.uint8)
-            cv2.polylines(canvas, list(ends[bins == b]), False, 0, 1)
-            maps[b] = cv2.distanceTransform(canvas, cv2.DIST_L2, 3) * cell
-        return np.minimum(maps, self.TRUNCATE)
+        col, row = np.floor((np.asarray(points, dtype=float) + self.EXTENT) / cell).astype(np.int64).T
+        inside = (col >= 0) & (col < self.GRID) & (row >= 0) & (row < self.GRID)
+        bins = (np.asarray(orientations)[inside] / np.pi * self.ORIENT_BINS).astype(int) % self.ORIENT_BINS
+        canvas = np.full((self.ORIENT_BINS, self.GRID, self.GRID), 255, np.uint8)
+        canvas[bins, row[inside], col[inside]] = 0
+        maps = np.stack([cv2.distanceTransform(c, cv2.DIST_L2, 3) for c in canvas]) * np.float32(cell)
+        return np.minimum(maps, np.float32(self.TRUNCATE))
 
     def shortlist(self, maps: np.ndarray, phis: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
         """Views and rotation indices (in no particular order) of the ``count`` (view,
@@ -449,8 +456,9 @@ class ChamferPrefilter:
         return dist.mean(axis=2)
 
 
-def _spread_points(segments: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """``count`` points evenly spaced along the total length of a segment set."""
+def spread_points(segments: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points evenly spaced along the total length of a segment set, and the
+    orientation (modulo pi) of the segment each lies on."""
     lengths = segment_lengths(segments)
     cum = np.concatenate([[0.0], np.cumsum(lengths)])
     at = (np.arange(count) + 0.5) / count * cum[-1]

@@ -30,16 +30,19 @@ from .camera import Camera
 from .geometry import rot_z, rotation_between
 
 
-def undistort_segments(segments_px: np.ndarray, camera: Camera) -> np.ndarray:
-    """Image segments in normalised camera coordinates ((u - cx) / fx, (v - cy) / fy)."""
-    pts = np.asarray(segments_px, dtype=float).reshape(-1, 1, 2)
+def undistort_points(points_px: np.ndarray, camera: Camera) -> np.ndarray:
+    """Pixels (N, 2) in normalised camera coordinates ((u - cx) / fx, (v - cy) / fy)."""
+    pts = np.asarray(points_px, dtype=float).reshape(-1, 1, 2)
     if len(pts) == 0:
-        return np.zeros((0, 2, 2))
+        return np.zeros((0, 2))
     if camera.has_distortion:
-        out = cv2.undistortPoints(pts, camera.K, camera.dist_coeffs).reshape(-1, 2)
-    else:
-        out = (pts.reshape(-1, 2) - [camera.cx, camera.cy]) / [camera.fx, camera.fy]
-    return out.reshape(-1, 2, 2)
+        return cv2.undistortPoints(pts, camera.K, camera.dist_coeffs).reshape(-1, 2)
+    return (pts.reshape(-1, 2) - [camera.cx, camera.cy]) / [camera.fx, camera.fy]
+
+
+def undistort_segments(segments_px: np.ndarray, camera: Camera) -> np.ndarray:
+    """Image segments (N, 2, 2) in normalised camera coordinates."""
+    return undistort_points(np.asarray(segments_px, dtype=float).reshape(-1, 2), camera).reshape(-1, 2, 2)
 
 
 def virtual_alignment(center_normalised: np.ndarray) -> np.ndarray:
@@ -48,11 +51,13 @@ def virtual_alignment(center_normalised: np.ndarray) -> np.ndarray:
     return rotation_between(np.array([0.0, 0.0, 1.0]), ray)
 
 
-def to_virtual(segments_normalised: np.ndarray, R_align: np.ndarray) -> np.ndarray:
-    """Segments seen by the virtual camera R_align^T (rays rotated, then re-projected)."""
-    pts = np.asarray(segments_normalised, dtype=float).reshape(-1, 2)
+def to_virtual(normalised: np.ndarray, R_align: np.ndarray) -> np.ndarray:
+    """Points (..., 2), e.g. segments (N, 2, 2), seen by the virtual camera R_align^T (rays
+    rotated, then re-projected); the shape is kept."""
+    normalised = np.asarray(normalised, dtype=float)
+    pts = normalised.reshape(-1, 2)
     rays = np.concatenate([pts, np.ones((len(pts), 1))], axis=1) @ R_align  # R_align^T r
-    return (rays[:, :2] / rays[:, 2:3]).reshape(-1, 2, 2)
+    return (rays[:, :2] / rays[:, 2:3]).reshape(normalised.shape)
 
 
 def pose_from_similarity(R_view: np.ndarray, model_center: np.ndarray, scale: float,
@@ -274,8 +279,11 @@ class EdgeEvidence:
         smooth = cv2.GaussianBlur(np.asarray(gray, np.float32), (5, 5), 0)
         dx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0)[rows, cols]
         dy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1)[rows, cols]
-        direction = np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi)  # edge runs across the gradient
-        bins = (direction / np.pi * self.BINS).astype(int) % self.BINS
+        #: the edge pixels (x, y) and the direction each edge runs in, modulo pi (across the
+        #: gradient): the pre-filter's picture of an image region
+        self.pixels = np.stack([cols, rows], axis=1)
+        self.directions = np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi)
+        bins = (self.directions / np.pi * self.BINS).astype(int) % self.BINS
         #: per direction bin b, the edge pixels of bins b - 1, b and b + 1
         self.like_edges = np.zeros((self.BINS,) + self.shape, np.uint8)
         for step in (-1, 0, 1):
@@ -323,7 +331,7 @@ class EdgeEvidence:
     @classmethod
     def grown_outline(cls, points: np.ndarray) -> np.ndarray:
         """Convex hull of the points, grown about its centre by the margin (class doc)."""
-        hull = cv2.convexHull(np.asarray(points, np.float32).reshape(-1, 2)).reshape(-1, 2).astype(np.float64)
+        hull = convex_hull(points)
         center = hull.mean(axis=0)
         radius = max(float(np.sqrt(np.mean(np.sum((hull - center) ** 2, axis=1)))), 1.0)
         return center + (1.0 + max(cls.OUTLINE_MARGIN, cls.MIN_MARGIN_PX / radius)) * (hull - center)
@@ -351,6 +359,11 @@ class EdgeEvidence:
         cv2.polylines(drawn, np.rint(pts.reshape(-1, 2, 2) - offset).astype(np.int32), False, 1, 1)
         near = cv2.dilate(drawn, chamfer_ball(tolerance_px)) > 0
         return float(np.count_nonzero(near & inside) / total)
+
+
+def convex_hull(points: np.ndarray) -> np.ndarray:
+    """Corners (K, 2) of the convex hull of points (..., 2)."""
+    return cv2.convexHull(np.asarray(points, np.float32).reshape(-1, 2)).reshape(-1, 2).astype(np.float64)
 
 
 @lru_cache(maxsize=16)

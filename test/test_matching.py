@@ -227,7 +227,7 @@ def test_prefilter_scores_match_a_plain_gather():
     views = [matching.describe(random_shape(rng, 10) * 1.5) for _ in range(20)]
     prefilter = matching.ChamferPrefilter(views)
     region = matching.describe(random_shape(rng, 12) * 1.5)
-    maps = prefilter.distance_maps(region)
+    maps = prefilter.distance_maps(*matching.spread_points(region.segments, 2000))
     phis = matching.rotation_candidates(np.stack([v.orientation_histogram for v in views]),
                                         region.orientation_histogram, 2)
     f = matching.ChamferPrefilter
@@ -254,7 +254,7 @@ def test_prefilter_shortlist_keeps_the_best_pairs_of_the_full_score():
     views = [matching.describe(s) for s in shapes]
     prefilter = matching.ChamferPrefilter(views)
     region = matching.describe(similarity(shapes[123], 1.0, 0.7, np.zeros(2)))
-    maps = prefilter.distance_maps(region)
+    maps = prefilter.distance_maps(*matching.spread_points(region.segments, 2000))
     phis = matching.rotation_candidates(np.stack([v.orientation_histogram for v in views]),
                                         region.orientation_histogram, 2)
     full = prefilter.scores(maps, phis)
@@ -266,3 +266,21 @@ def test_prefilter_shortlist_keeps_the_best_pairs_of_the_full_score():
     keep_all.COARSE_KEEP = full.size
     v_all, w_all = keep_all.shortlist(maps, phis, 5)
     assert sorted(full[v_all, w_all]) == sorted(np.sort(full.ravel())[:5])
+
+
+def test_prefilter_maps_keep_directions_apart_and_drop_points_outside():
+    f = matching.ChamferPrefilter([matching.describe(random_shape(np.random.default_rng(1), 6))])
+    cell = 2 * f.EXTENT / f.GRID
+
+    def index(v):
+        return int(np.floor((v + f.EXTENT) / cell))
+
+    points = np.array([[0.0, 0.0], [0.5, -0.5], [9.0, 0.0]])  # the last lies outside the square
+    maps = f.distance_maps(points, np.array([0.0, np.pi / 2, 0.0]))
+    horizontal, vertical = maps[0], maps[f.ORIENT_BINS // 2]
+    assert horizontal[index(0.0), index(0.0)] == 0 and vertical[index(-0.5), index(0.5)] == 0
+    assert (horizontal == 0).sum() == 1 and (vertical == 0).sum() == 1
+    # two cells away (OpenCV's 3x3 chamfer counts an axial step as 0.955 cells)
+    assert horizontal[index(0.0), index(0.1)] == pytest.approx((index(0.1) - index(0.0)) * cell, rel=0.05)
+    assert vertical[index(0.0), index(0.0)] == pytest.approx(f.TRUNCATE)  # 0.7 away, truncated
+    assert np.all(maps[[1, 2, 4, 5]] == np.float32(f.TRUNCATE))
