@@ -175,13 +175,15 @@ def associate_poses(model_3d: np.ndarray, spans: np.ndarray, R: np.ndarray, t: n
 
 
 def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: np.ndarray, spans: np.ndarray,
-                 f_scale: float, iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """Robust Gauss-Newton on the end-point-to-line distances (normalised units), for B
-    poses R (B, 3, 3), t (B, 3) at once: pairs (model segment, image line)
-    ``spans[b]:spans[b + 1]`` belong to pose b. Returns new arrays.
+                 f_scale: float, iterations: int = 8, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Robust Gauss-Newton on the point-to-line distances (normalised units), for B poses
+    R (B, 3, 3), t (B, 3) at once: pairs (model points (K, P, 3), image line) ``spans[b]:spans[b + 1]``
+    belong to pose b; the P points of a pair (a segment's 2 end points, or 1 sampled point)
+    are pulled onto its line. Returns new arrays.
 
     Iteratively reweighted least squares with Huber weights (``f_scale`` is the Huber
-    threshold), an analytic Jacobian and the update R <- exp(w) R, t <- t + dt: six
+    threshold) times the pair's ``weights`` (K,) if given (1 by default), an analytic
+    Jacobian and the update R <- exp(w) R, t <- t + dt: six
     unknowns, so each step is a 6x6 solve per pose; far cheaper than a generic solver with
     numeric derivatives. It runs for every hypothesis and every neighbouring view the
     climb tries, on about a hundred points each, so numpy's per-call overhead is the cost:
@@ -194,11 +196,13 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
     """
     R, t = np.array(R, dtype=float), np.array(t, dtype=float)
     lines = line_equations(image_2d)  # (K, 3)
-    nx, ny, offsets = np.repeat(lines, 2, axis=0).T
+    per_pair = model_3d.shape[1]
+    nx, ny, offsets = np.repeat(lines, per_pair, axis=0).T
+    pair_weights = None if weights is None else np.repeat(np.asarray(weights, dtype=float), per_pair)
     points = model_3d.reshape(-1, 3).T  # (3, N)
-    ends = 2 * np.asarray(spans)  # end point columns of each pose
+    ends = per_pair * np.asarray(spans)  # point columns of each pose
     active = np.diff(spans) >= 3
-    jac = np.empty((6, points.shape[1]))  # d residual / d (w, dt), one column per end point
+    jac = np.empty((6, points.shape[1]))  # d residual / d (w, dt), one column per point
     rows = jac[3:]
     rotated = np.empty_like(points)
     moved = np.empty_like(points)
@@ -222,7 +226,8 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
         np.subtract(r1 * g2, r2 * g1, out=jac[0])
         np.subtract(r2 * g0, r0 * g2, out=jac[1])
         np.subtract(r0 * g1, r1 * g0, out=jac[2])
-        weighted = jac * (f_scale / np.maximum(np.abs(residual), f_scale))  # Huber: 1 within f_scale
+        weight = f_scale / np.maximum(np.abs(residual), f_scale)  # Huber: 1 within f_scale
+        weighted = jac * (weight if pair_weights is None else weight * pair_weights)
         for b in np.nonzero(active)[0]:
             lo, hi = ends[b], ends[b + 1]
             hessian = weighted[:, lo:hi] @ jac[:, lo:hi].T
@@ -236,6 +241,42 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
             t[b] = t[b] + step[3:]
             active[b] = step @ step >= 1e-14
     return R, t
+
+
+def polish_pose(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, weights: np.ndarray,
+                evidence: "EdgeEvidence", camera: Camera, radius_px: float, rounds: int,
+                spacing_px: float, f_scale: float, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """Refine one pose on the Canny edge pixels rather than on the Hough lines.
+
+    Points every ``spacing_px`` along the projected model segments (M, 2, 3) are paired
+    with their nearest like-oriented edge pixel within ``radius_px``
+    (``EdgeEvidence.nearest_edges``) and pulled onto the line through it along the model
+    edge, weighted by ``weights`` (M,) per segment; re-paired each round. Every projected
+    edge speaks, where the line refinement only hears edges the line detector found
+    (6-12 on the rounded bracket, whose arcs and holes give no Hough lines).
+    """
+    for _ in range(rounds):
+        ends_px = project_pixels(model_3d, R, t, camera)
+        delta = ends_px[:, 1] - ends_px[:, 0]
+        lengths = np.maximum(np.hypot(delta[:, 0], delta[:, 1]), 1e-12)
+        counts = np.maximum((lengths // spacing_px).astype(int), 1)
+        segment = np.repeat(np.arange(len(model_3d)), counts)
+        frac = (np.arange(len(segment)) - np.repeat(np.cumsum(counts) - counts, counts) + 0.5) / counts[segment]
+        points = model_3d[segment, 0] + frac[:, None] * (model_3d[segment, 1] - model_3d[segment, 0])
+        edge, found = evidence.nearest_edges(project_pixels(points, R, t, camera),
+                                             evidence.orientation_bin(ends_px)[segment], radius_px)
+        if found.sum() < MIN_POLISH_POINTS:
+            break
+        direction = (delta / lengths[:, None])[segment[found]]
+        lines = undistort_segments(np.stack([edge[found] - direction, edge[found] + direction], axis=1), camera)
+        R, t = refine_poses(R[None], t[None], points[found][:, None], lines, np.array([0, found.sum()]), f_scale,
+                            iterations, weights[segment[found]])
+        R, t = R[0], t[0]
+    return R, t
+
+
+#: fewer paired edge points than this do not pin a pose (and suggest a pose off the part)
+MIN_POLISH_POINTS = 12
 
 
 class EdgeEvidence:
@@ -284,6 +325,8 @@ class EdgeEvidence:
         self.pixels = np.stack([cols, rows], axis=1)
         self.directions = np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi)
         bins = (self.directions / np.pi * self.BINS).astype(int) % self.BINS
+        self._edge_bins = np.zeros(self.shape, np.int64)
+        self._edge_bins[rows, cols] = bins
         #: per direction bin b, the edge pixels of bins b - 1, b and b + 1
         self.like_edges = np.zeros((self.BINS,) + self.shape, np.uint8)
         for step in (-1, 0, 1):
@@ -327,6 +370,33 @@ class EdgeEvidence:
             if hi > lo:
                 out[b] = weight[lo:hi][near[lo:hi]].sum() / max(weight[lo:hi].sum(), 1e-12)
         return out
+
+    def nearest_edges(self, points_px: np.ndarray, bins: np.ndarray, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """For points (N, 2) on model edges of direction ``bins`` (N,): the nearest edge
+        pixel (N, 2), x and y, and whether it lies within ``radius_px`` and runs alike
+        (its direction bin within one of the point's). The distance transform covers only
+        the points' bounding box (about 1.5 ms for a 200 x 200 pixel part, 10 ms for the
+        whole 640 x 480 image)."""
+        h, w = self.shape
+        pad = int(np.ceil(radius_px)) + 1
+        x0, y0 = np.clip(np.floor(points_px.min(axis=0)).astype(int) - pad, 0, [w, h])
+        x1, y1 = np.clip(np.ceil(points_px.max(axis=0)).astype(int) + pad + 1, 0, [w, h])
+        nearest, found = np.zeros_like(points_px, dtype=float), np.zeros(len(points_px), bool)
+        window = self.edges[y0:y1, x0:x1]
+        if not window.any():
+            return nearest, found
+        _, labels = cv2.distanceTransformWithLabels((~window).astype(np.uint8), cv2.DIST_L2, 5,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+        rows, cols = np.nonzero(window)
+        pixel_of = np.zeros((labels.max() + 1, 2), np.int64)  # label -> (x, y) of its edge pixel
+        pixel_of[labels[rows, cols]] = np.stack([cols, rows], axis=1)
+        x, y = np.rint(points_px).astype(int).T
+        inside = (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
+        edge = pixel_of[labels[np.clip(y - y0, 0, y1 - y0 - 1), np.clip(x - x0, 0, x1 - x0 - 1)]] + [x0, y0]
+        turn = np.abs(self._edge_bins[edge[:, 1], edge[:, 0]] - bins) % self.BINS
+        found = inside & (np.minimum(turn, self.BINS - turn) <= 1) & \
+            (np.hypot(*(edge - points_px).T) <= radius_px)
+        return edge.astype(float), found
 
     @classmethod
     def grown_outline(cls, points: np.ndarray) -> np.ndarray:
