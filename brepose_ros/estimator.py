@@ -183,13 +183,14 @@ class ViewLibrary:
             norm = normalisation_of(metric)
             self.normalisation.append(norm)
             self.features.append(matching.describe(norm.apply(metric)))
-        self.orientation_histograms = np.stack([f.orientation_histogram for f in self.features])
+        histograms = np.stack([f.orientation_histogram for f in self.features])
+        self.orientation_spectra = matching.orientation_spectra(histograms)
         self.prefilter = matching.ChamferPrefilter(self.features)
         self.neighbours = nearest_neighbours(graph.view_directions, NEIGHBOURS)
 
     def shortlist(self, region: Region, p) -> list[tuple[int, float]]:
         """The (view, rotation) pairs closest to the region by oriented chamfer distance."""
-        phis = matching.rotation_candidates(self.orientation_histograms,
+        phis = matching.rotation_candidates(self.orientation_spectra,
                                             region.features.orientation_histogram, p.rotation_candidates)
         views, which = self.prefilter.shortlist(region.distance_maps, phis, p.shortlist_size)
         return [(int(v), float(phis[v, r])) for v, r in zip(views, which)]

@@ -53,7 +53,8 @@ def test_rotation_candidates_contain_true_rotation():
     for angle in (0.3, 2.0, 4.0):
         model = matching.describe(segs)
         image = matching.describe(similarity(segs, 1.0, angle, 0.0))
-        phis = matching.rotation_candidates(model.orientation_histogram[None], image.orientation_histogram, 3)[0]
+        spectra = matching.orientation_spectra(model.orientation_histogram[None])
+        phis = matching.rotation_candidates(spectra, image.orientation_histogram, 3)[0]
         assert np.min(np.abs(wrap_angle(phis - angle))) < np.radians(3)
 
 
@@ -228,8 +229,8 @@ def test_prefilter_scores_match_a_plain_gather():
     prefilter = matching.ChamferPrefilter(views)
     region = matching.describe(random_shape(rng, 12) * 1.5)
     maps = prefilter.distance_maps(*matching.spread_points(region.segments, 2000))
-    phis = matching.rotation_candidates(np.stack([v.orientation_histogram for v in views]),
-                                        region.orientation_histogram, 2)
+    spectra = matching.orientation_spectra(np.stack([v.orientation_histogram for v in views]))
+    phis = matching.rotation_candidates(spectra, region.orientation_histogram, 2)
     f = matching.ChamferPrefilter
     c, s = np.cos(phis.astype(np.float32))[..., None], np.sin(phis.astype(np.float32))[..., None]
     x, y = prefilter.points[:, None, :, 0], prefilter.points[:, None, :, 1]
@@ -255,8 +256,8 @@ def test_prefilter_shortlist_keeps_the_best_pairs_of_the_full_score():
     prefilter = matching.ChamferPrefilter(views)
     region = matching.describe(similarity(shapes[123], 1.0, 0.7, np.zeros(2)))
     maps = prefilter.distance_maps(*matching.spread_points(region.segments, 2000))
-    phis = matching.rotation_candidates(np.stack([v.orientation_histogram for v in views]),
-                                        region.orientation_histogram, 2)
+    spectra = matching.orientation_spectra(np.stack([v.orientation_histogram for v in views]))
+    phis = matching.rotation_candidates(spectra, region.orientation_histogram, 2)
     full = prefilter.scores(maps, phis)
     views_kept, which = prefilter.shortlist(maps, phis, 5)
     assert len(views_kept) == 5 and views_kept[np.argmin(full[views_kept, which])] == 123
