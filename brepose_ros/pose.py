@@ -349,9 +349,12 @@ class EdgeEvidence:
         if tolerance_px not in self._near_like:
             # one pixel of False around the image: points outside it are clipped onto that
             # border instead of being masked out (a mask costs several array operations)
+            # (filled in place: np.stack, > 0 and np.pad of the 8 maps took 5 of these 6 ms)
             ball = chamfer_ball(tolerance_px)
-            self._near_like[tolerance_px] = np.pad(np.stack([cv2.dilate(m, ball) for m in self.like_edges]) > 0,
-                                                   ((0, 0), (1, 1), (1, 1)))
+            near = np.zeros((self.BINS, self.shape[0] + 2, self.shape[1] + 2), np.uint8)
+            for b, like in enumerate(self.like_edges):
+                near[b, 1:-1, 1:-1] = cv2.dilate(like, ball)
+            self._near_like[tolerance_px] = near.view(bool)  # 0/1 bytes, dilated from 0/1
         h, w = self.shape
         delta = model_px[:, 1] - model_px[:, 0]
         lengths = np.sqrt((delta * delta).sum(axis=1))
