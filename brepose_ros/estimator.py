@@ -12,8 +12,8 @@
 
 The whole image is matched and verified first, the clusters only when it holds no pose
 scoring ``CLEAR_SCORE``. The (region, view, rotation) jobs run region by region, all jobs
-of a region as one batch of array operations (``matching.SegmentBatch``); ``matching.workers`` threads
-split each region's batch between them. Measured (bench/latency.py, 1,505 views, the other
+of a region as one batch of array operations (``matching.SegmentBatch``);
+``matching.workers`` threads split each region's batch between them. Measured (bench/latency.py, 1,505 views, the other
 core busy), 2 threads are still no faster than 1 (matching 38-46 against 33-40 ms per
 image): the batched steps are short and most of them hold the GIL; so the default is 1.
 """
@@ -515,11 +515,10 @@ CLIMB_MIN_GAIN = 1e-6
 #: on edge pixels by up to 0.7 degrees, 7 of them away from the truth; with the polish, not
 #: climbing changes their rotation errors by at most 0.35 degrees, 5 down and 6 up), and
 #: cost 12-40 ms each: without it the refinement takes 37 instead of 52 ms CPU per image
-#: (median, 2,500-view latency images). Nor are the
-#: clusters matched once the whole image holds such a pose: no final pose changed on the
-#: 480 images of bench/accuracy.py (all five conditions), and on the latency images whose
-#: part falls apart into two clusters a third of the work is saved (69 instead of 114 ms
-#: CPU per image, median of all 12)
+#: (median, 2,500-view latency images). Nor are the clusters matched once the whole image
+#: holds such a pose: no final pose changed on the 480 images of bench/accuracy.py (all five
+#: conditions), and on the latency images whose part falls apart into two clusters a third
+#: of the work is saved (69 instead of 114 ms CPU per image, median of all 12)
 CLEAR_SCORE = 0.95
 
 #: graph neighbours tried per step of the view search
