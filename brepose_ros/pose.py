@@ -259,9 +259,7 @@ def polish_pose(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, weights: np.
         ends_px = project_pixels(model_3d, R, t, camera)
         delta = ends_px[:, 1] - ends_px[:, 0]
         lengths = np.maximum(np.hypot(delta[:, 0], delta[:, 1]), 1e-12)
-        counts = np.maximum((lengths // spacing_px).astype(int), 1)
-        segment = np.repeat(np.arange(len(model_3d)), counts)
-        frac = (np.arange(len(segment)) - np.repeat(np.cumsum(counts) - counts, counts) + 0.5) / counts[segment]
+        segment, frac = samples_along(np.maximum((lengths // spacing_px).astype(int), 1))
         points = model_3d[segment, 0] + frac[:, None] * (model_3d[segment, 1] - model_3d[segment, 0])
         edge, found = evidence.nearest_edges(project_pixels(points, R, t, camera),
                                              evidence.orientation_bin(ends_px)[segment], radius_px)
@@ -277,6 +275,14 @@ def polish_pose(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, weights: np.
 
 #: fewer paired edge points than this do not pin a pose (and suggest a pose off the part)
 MIN_POLISH_POINTS = 12
+
+
+def samples_along(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``counts[i]`` evenly spaced samples on segment i: each sample's segment and its
+    fraction along it (the centres of ``counts[i]`` equal pieces)."""
+    segment = np.repeat(np.arange(len(counts)), counts)
+    offsets = np.arange(len(segment)) - np.repeat(np.cumsum(counts) - counts, counts)
+    return segment, (offsets + 0.5) / counts[segment]
 
 
 class EdgeEvidence:
@@ -325,7 +331,7 @@ class EdgeEvidence:
         self.pixels = np.stack([cols, rows], axis=1)
         self.directions = np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi)
         bins = (self.directions / np.pi * self.BINS).astype(int) % self.BINS
-        self._edge_bins = np.zeros(self.shape, np.int64)
+        self._edge_bins = np.zeros(self.shape, np.uint8)
         self._edge_bins[rows, cols] = bins
         #: per direction bin b, the edge pixels of bins b - 1, b and b + 1
         self.like_edges = np.zeros((self.BINS,) + self.shape, np.uint8)
@@ -359,16 +365,13 @@ class EdgeEvidence:
         delta = model_px[:, 1] - model_px[:, 0]
         lengths = np.sqrt((delta * delta).sum(axis=1))
         counts = np.clip(np.ceil(lengths / 2.0).astype(int), 1, 2000)
-        seg_idx = np.repeat(np.arange(len(model_px)), counts)
-        ends = np.cumsum(counts)
-        offsets = np.arange(len(seg_idx)) - np.repeat(ends - counts, counts)
-        frac = (offsets + 0.5) / counts[seg_idx]
+        seg_idx, frac = samples_along(counts)
         pts = model_px[:, 0][seg_idx] + frac[:, None] * delta[seg_idx]
         weight = (lengths / counts)[seg_idx]
         x, y = np.clip(np.rint(pts).astype(int) + 1, 0, [w + 1, h + 1]).T
         near = self._near_like[tolerance_px][self._bins_of(delta)[seg_idx], y, x]
         out = np.zeros(len(spans) - 1)
-        point_spans = np.concatenate([[0], ends])[spans]
+        point_spans = np.concatenate([[0], np.cumsum(counts)])[spans]
         for b, (lo, hi) in enumerate(zip(point_spans[:-1], point_spans[1:])):
             if hi > lo:
                 out[b] = weight[lo:hi][near[lo:hi]].sum() / max(weight[lo:hi].sum(), 1e-12)
