@@ -52,7 +52,7 @@ setup(
             "brepose-bag = brepose_ros.cli.bag:main",
             "brepose-estimate = brepose_ros.cli.estimate:main",
             "brepose-eval = brepose_ros.cli.evaluate:main",
-            "estimator = brepose_ros.node:main",
+            "estimator = brepose_ros.ros.node:main",
         ],
     },
 )

@@ -17,12 +17,14 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from brepose_ros import shapes  # noqa: E402
-from brepose_ros.aspect_graph import AspectGraph, compile_aspect_graph  # noqa: E402
-from brepose_ros.cad import load_step, tessellate  # noqa: E402
-from brepose_ros.estimator import Estimator  # noqa: E402
-from brepose_ros.evaluation import ModelPoints, evaluate_scene, scene_summary  # noqa: E402
-from brepose_ros.scenes import SceneConfig, generate_scene, load_scene  # noqa: E402
+from brepose_ros.synthetic import shapes  # noqa: E402
+from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
+from brepose_ros.offline.compiler import compile_aspect_graph  # noqa: E402
+from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
+from brepose_ros.online.estimator import Estimator  # noqa: E402
+from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene, scene_summary  # noqa: E402
+from brepose_ros.synthetic.scenes import SceneConfig, generate_scene  # noqa: E402
+from brepose_ros.scene_folder import load_scene  # noqa: E402
 
 CONDITIONS = {
     "clean": SceneConfig(),

@@ -22,9 +22,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from brepose_ros import shapes
-from brepose_ros.aspect_graph import compile_aspect_graph
-from brepose_ros.hidden_lines import DEFAULT_METHOD
+from brepose_ros.synthetic import shapes
+from brepose_ros.offline.compiler import compile_aspect_graph
+from brepose_ros.offline.hidden_lines import DEFAULT_METHOD
 from brepose_ros.viewsphere import fibonacci_step
 
 SHARED_STEPS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "step"

@@ -21,11 +21,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.accuracy import CONDITIONS, part_step  # noqa: E402
-from brepose_ros.aspect_graph import AspectGraph, compile_aspect_graph  # noqa: E402
-from brepose_ros.cad import load_step, tessellate  # noqa: E402
-from brepose_ros.estimator import Estimator  # noqa: E402
-from brepose_ros.evaluation import ModelPoints, evaluate_scene  # noqa: E402
-from brepose_ros.scenes import generate_scene, load_scene  # noqa: E402
+from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
+from brepose_ros.offline.compiler import compile_aspect_graph  # noqa: E402
+from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
+from brepose_ros.online.estimator import Estimator  # noqa: E402
+from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene  # noqa: E402
+from brepose_ros.synthetic.scenes import generate_scene  # noqa: E402
+from brepose_ros.scene_folder import load_scene  # noqa: E402
 
 
 def scene(step: Path, condition: str, n: int, seed: int, cache: Path):

@@ -1,4 +1,4 @@
-"""Time each stage of the image edge stage (brepose_ros.image_edges) per 640x480 image.
+"""Time each stage of the image edge stage (brepose_ros.online.image_edges) per 640x480 image.
 
     python bench/edges.py [IMAGE ...] [--repeat N]
 
@@ -17,7 +17,7 @@ import time
 import cv2
 import numpy as np
 
-from brepose_ros.image_edges import (
+from brepose_ros.online.image_edges import (
     EdgeParams,
     canny_edges,
     extract_segments,

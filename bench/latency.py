@@ -24,10 +24,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.accuracy import part_step  # noqa: E402
-from brepose_ros.aspect_graph import AspectGraph, compile_aspect_graph  # noqa: E402
-from brepose_ros.estimator import Estimator  # noqa: E402
+from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
+from brepose_ros.offline.compiler import compile_aspect_graph  # noqa: E402
+from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
-from brepose_ros.scenes import generate_scene, load_scene  # noqa: E402
+from brepose_ros.synthetic.scenes import generate_scene  # noqa: E402
+from brepose_ros.scene_folder import load_scene  # noqa: E402
 from brepose_ros.viewsphere import fibonacci_step  # noqa: E402
 
 STAGES = ("edges", "prefilter", "matching", "refinement", "total")

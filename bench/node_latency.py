@@ -8,7 +8,7 @@ Rows:
   means the views really ran on two cores at once;
 - node lock-step: publish Image + CameraInfo, wait for the node's diagnostics of that image
   (latency = publish to diagnostics arrival, which follows the pose), with the patched
-  executor (``ros_io.make_executor``) and rclpy's stock MultiThreadedExecutor;
+  executor (``messages.make_executor``) and rclpy's stock MultiThreadedExecutor;
 - node at a camera rate: frames published at ``--rate`` Hz regardless of the node; the node
   answers the newest frame each time it is free and skips the rest.
 """
@@ -28,12 +28,12 @@ from rclpy.parameter import Parameter  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
-from brepose_ros.estimator import Estimator  # noqa: E402
-from brepose_ros.node import EstimatorNode  # noqa: E402
+from brepose_ros.online.estimator import Estimator  # noqa: E402
+from brepose_ros.ros.node import EstimatorNode  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
-from brepose_ros.ros_io import (RosSession, Player, camera_info_msg, image_msg,  # noqa: E402
-                                make_executor, stamp_from_ns)
-from brepose_ros.scenes import load_scene  # noqa: E402
+from brepose_ros.ros.messages import camera_info_msg, image_msg, make_executor, stamp_from_ns  # noqa: E402
+from brepose_ros.ros.replay import Player, RosSession  # noqa: E402
+from brepose_ros.scene_folder import load_scene  # noqa: E402
 
 FRAME = "camera_optical_frame"
 WARM_UP_NS, FIRST_NS = 10**18, 2 * 10**18

@@ -205,7 +205,8 @@ def peer_python(venv: Path) -> Path:
 
 
 def ensure_graph(step: Path, path: Path, step_deg: float, workers: int) -> tuple[object, float | None]:
-    from brepose_ros.aspect_graph import AspectGraph, AspectGraphError, compile_aspect_graph
+    from brepose_ros.aspect_graph import AspectGraph, AspectGraphError
+    from brepose_ros.offline.compiler import compile_aspect_graph
 
     try:
         graph = AspectGraph.load(path, step_path=step)
@@ -223,7 +224,7 @@ def ensure_graph(step: Path, path: Path, step_deg: float, workers: int) -> tuple
 
 
 def ensure_scene(step: Path, folder: Path, n: int, seed: int, config) -> None:
-    from brepose_ros.scenes import generate_scene
+    from brepose_ros.synthetic.scenes import generate_scene
 
     stamp = folder / "config.json"
     want = {"n": n, "seed": seed, "config": repr(config), "step_sha": _sha(step)}
@@ -237,7 +238,7 @@ def ensure_scene(step: Path, folder: Path, n: int, seed: int, config) -> None:
 
 
 def _sha(path: Path) -> str:
-    from brepose_ros.cad import file_sha256
+    from brepose_ros.aspect_graph import file_sha256
     return file_sha256(path)
 
 
@@ -268,10 +269,10 @@ def render_templates(step: Path, folder: Path, peer_step: float, scales: int, co
     """Base templates: one grey image + mask per (view, distance), part centred on the axis."""
     import cv2
 
-    from brepose_ros.cad import load_step, tessellate
+    from brepose_ros.offline.cad import load_step, tessellate
     from brepose_ros.camera import Camera
     from brepose_ros.geometry import look_at_rotation
-    from brepose_ros.render import Placed, render
+    from brepose_ros.synthetic.render import Placed, render
     from brepose_ros.viewsphere import fibonacci_directions, view_ups
 
     key = {"step_sha": _sha(step), "peer_step": peer_step, "scales": scales, "fx": config.fx,
@@ -328,10 +329,10 @@ def render_templates(step: Path, folder: Path, peer_step: float, scales: int, co
 def run_ours(graph, scene_folder: Path) -> list[dict]:
     import cv2
 
-    from brepose_ros.estimator import Estimator
-    from brepose_ros.evaluation import prediction_entry
+    from brepose_ros.online.estimator import Estimator
+    from brepose_ros.evaluation.metrics import prediction_entry
     from brepose_ros.params import EstimatorParams
-    from brepose_ros.scenes import load_scene
+    from brepose_ros.scene_folder import load_scene
 
     scene = load_scene(scene_folder)
     estimator = Estimator(graph, EstimatorParams())
@@ -347,8 +348,8 @@ def run_ours(graph, scene_folder: Path) -> list[dict]:
 
 
 def score(scene_folder: Path, predictions: list[dict], model) -> dict:
-    from brepose_ros.evaluation import pose_errors, summarise
-    from brepose_ros.scenes import load_scene
+    from brepose_ros.evaluation.metrics import pose_errors, summarise
+    from brepose_ros.scene_folder import load_scene
 
     by_image = {p["image"]: p for p in predictions}
     errors = []
@@ -367,7 +368,7 @@ def score(scene_folder: Path, predictions: list[dict], model) -> dict:
 def best_candidates(scene_folder: Path, predictions: list[dict]) -> list[dict]:
     """Each image's LINE-2D candidate closest to the ground truth in rotation (oracle)."""
     from brepose_ros.geometry import rotation_angle_deg
-    from brepose_ros.scenes import load_scene
+    from brepose_ros.scene_folder import load_scene
 
     truth = {e.image: e for e in load_scene(scene_folder).entries}
     chosen = []
@@ -383,10 +384,10 @@ def best_candidates(scene_folder: Path, predictions: list[dict]) -> list[dict]:
 
 
 def project_main(args) -> int:
-    from brepose_ros import shapes
-    from brepose_ros.cad import load_step, tessellate
-    from brepose_ros.evaluation import ModelPoints, write_predictions
-    from brepose_ros.scenes import SceneConfig
+    from brepose_ros.synthetic import shapes
+    from brepose_ros.offline.cad import load_step, tessellate
+    from brepose_ros.evaluation.metrics import ModelPoints, write_predictions
+    from brepose_ros.synthetic.scenes import SceneConfig
 
     wall = time.perf_counter()
     out = Path(args.out)
@@ -476,7 +477,7 @@ def project_main(args) -> int:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--role", choices=("project", "peer"), default="project", help=argparse.SUPPRESS)
-    p.add_argument("--part", default="sharp_bracket", help="built-in part (brepose_ros.shapes)")
+    p.add_argument("--part", default="sharp_bracket", help="built-in part (brepose_ros.synthetic.shapes)")
     p.add_argument("--images", type=int, default=12, help="images per scene")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--occluded", action="store_true", help="also a scene with 30 %% occlusion and 3 clutter shapes")

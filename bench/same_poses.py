@@ -23,9 +23,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.accuracy import CONDITIONS, part_step  # noqa: E402
-from brepose_ros.aspect_graph import AspectGraph, compile_aspect_graph  # noqa: E402
-from brepose_ros.estimator import Estimator  # noqa: E402
-from brepose_ros.scenes import generate_scene, load_scene  # noqa: E402
+from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
+from brepose_ros.offline.compiler import compile_aspect_graph  # noqa: E402
+from brepose_ros.online.estimator import Estimator  # noqa: E402
+from brepose_ros.synthetic.scenes import generate_scene  # noqa: E402
+from brepose_ros.scene_folder import load_scene  # noqa: E402
 
 PARTS = ["sharp_bracket", "rounded_bracket"]
 REAL_PART = REPO.parent / "shared" / "data" / "step" / "09_soarm100__Base_attachment.step"

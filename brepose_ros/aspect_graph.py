@@ -1,4 +1,4 @@
-"""Stage 2 (offline): the aspect graph, the visible edges of a part from every viewpoint.
+"""The aspect graph file: the visible edges of a part from every viewpoint, checked on load.
 
 For each view on the sphere (``viewsphere``) the visible line sections (``hidden_lines``)
 are stored twice: normalised in the view plane for the matcher (the seed paper's metric
@@ -32,19 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .cad import file_sha256, load_step
-from .geometry import look_at_rotation
-from .hidden_lines import (DEFAULT_CHORD_TOLERANCE, DEFAULT_METHOD, DEFAULT_MIN_LENGTH, KIND_NAMES,
-                           HiddenLineRemover, view_coordinates)
-from .metric_space import Normalisation, normalisation_of, tetrads
-from .viewsphere import fibonacci_directions, lonlat_directions, view_ups
+from .metric_space import Normalisation
 
 FORMAT = "brepose-aspect-graph"
 FORMAT_VERSION = 1
 SUFFIX = ".brepose.npz"
-#: Golden-spiral spacing of the views: about 1,500 views, no direction more than 4 degrees
-#: from its nearest view.
-DEFAULT_STEP_DEG = 5.0
 
 #: name -> (dtype, shape with V = views, S = segments): the file's whole contract.
 _ARRAYS = {
@@ -193,6 +185,15 @@ def default_path(step_path: str | Path) -> Path:
     return Path(Path(step_path).stem + SUFFIX)
 
 
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file's bytes: what ties a compiled graph to its source model file."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 def _digest(metadata: dict, arrays: dict[str, np.ndarray]) -> str:
     """sha256 over the canonical metadata JSON and every array's name, dtype, shape and bytes."""
     digest = hashlib.sha256(json.dumps(metadata, sort_keys=True).encode())
@@ -259,111 +260,3 @@ def _check_arrays(path: Path, metadata: dict, arrays: dict[str, np.ndarray]) -> 
             raise AspectGraphError(f"{path}: array {name} does not match the shape/dtype its metadata lists")
     if offsets[0] != 0 or np.any(np.diff(offsets) < 0):
         raise AspectGraphError(f"{path}: seg_offsets is not a non-decreasing list starting at 0")
-
-
-# ----------------------------------------------------------------------------- compiling
-
-_remover: HiddenLineRemover | None = None  # one per worker process
-
-
-def _start_worker(step_path: str, options: dict) -> None:
-    global _remover
-    _remover = HiddenLineRemover(load_step(step_path), **options)
-
-
-def _visible_in_worker(task):
-    return _visible(_remover, task)
-
-
-def _visible(remover: HiddenLineRemover, task: tuple[int, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
-    """3D sections and kinds of a run of views (index of the first, their rotations)."""
-    first, rotations = task
-    results = []
-    for i, rotation in enumerate(rotations, start=first):
-        try:
-            view = remover.segments(rotation)
-        except Exception as error:  # OCCT exceptions do not pickle back to the parent
-            raise AspectGraphError(f"hidden-line removal failed for view {i} "
-                                   f"(direction {np.round(rotation[2], 4).tolist()}): {error}") from None
-        results.append((view.segments_3d, view.kinds))
-    return results
-
-
-def _run(part, step_path: str, tasks: list, options: dict, workers: int):
-    """Results of the tasks in order, in this process or in a pool of ``workers``."""
-    if workers == 1:
-        remover = HiddenLineRemover(part, **options)
-        yield from (_visible(remover, task) for task in tasks)
-        return
-    import multiprocessing
-
-    # spawn: a forked child deadlocks in OCCT's STEP reader. Each worker loads the file itself.
-    with multiprocessing.get_context("spawn").Pool(workers, _start_worker, (step_path, options)) as pool:
-        yield from pool.imap(_visible_in_worker, tasks)
-
-
-def compile_aspect_graph(step_path: str | Path, step_deg: float = DEFAULT_STEP_DEG, lonlat: int | None = None,
-                         workers: int | None = None, include_smooth: bool = False,
-                         chord_tolerance: float = DEFAULT_CHORD_TOLERANCE, min_length: float = DEFAULT_MIN_LENGTH,
-                         method: str = DEFAULT_METHOD, progress: bool = True) -> AspectGraph:
-    """Compile the aspect graph of a STEP part.
-
-    Views: a golden-spiral sphere with neighbours ``step_deg`` apart, or with ``lonlat=K``
-    the seed paper's longitude/latitude grid of density K. ``workers`` processes (default:
-    one per CPU) each load the STEP file themselves, since OCCT shapes cannot be sent
-    between processes. ``chord_tolerance`` and ``min_length`` are fractions of the model
-    diameter (``hidden_lines``). Raises CadError for an unusable STEP file and
-    AspectGraphError when a view cannot be computed.
-
-    With several workers the processes are spawned, so a calling script needs the usual
-    ``if __name__ == "__main__":`` guard (the console script and bench have it).
-    """
-    from tqdm import tqdm
-
-    step_path = str(step_path)
-    options = dict(method=method, chord_tolerance=chord_tolerance, min_length=min_length,
-                   include_smooth=include_smooth)
-    HiddenLineRemover.check_options(method, chord_tolerance, min_length)
-    part = load_step(step_path)
-    directions = lonlat_directions(lonlat) if lonlat is not None else fibonacci_directions(step_deg)
-    ups = view_ups(directions)
-    rotations = np.array([look_at_rotation(d, u) for d, u in zip(directions, ups)])
-    workers = max(1, min(workers or os.cpu_count() or 1, len(rotations)))
-    chunk = max(1, min(32, len(rotations) // (4 * workers)))
-    tasks = [(i, rotations[i: i + chunk]) for i in range(0, len(rotations), chunk)]
-    views = []
-    with tqdm(total=len(rotations), unit="view", disable=not progress, desc=Path(step_path).name) as bar:
-        for batch in _run(part, step_path, tasks, options, workers):
-            views.extend(batch)
-            bar.update(len(batch))
-    params = dict(units="m", projection="orthographic", up="geometry.default_up",
-                  sampling="lonlat" if lonlat is not None else "fibonacci",
-                  step_deg=None if lonlat is not None else float(step_deg), lonlat=lonlat,
-                  kinds=list(KIND_NAMES), step_file=Path(step_path).name, **options)
-    return _assemble(part, params, directions, ups, rotations, views)
-
-
-def _assemble(part, params, directions, ups, rotations, views) -> AspectGraph:
-    """Normalise every view's sections and lay them out flat."""
-    seg_2d, norm_centers, norm_scales = [], [], []
-    for i, ((seg_3d, _), rotation) in enumerate(zip(views, rotations)):
-        xy = view_coordinates(seg_3d, rotation, part.center)
-        if len(xy) == 0:
-            raise AspectGraphError(f"view {i} (direction {np.round(directions[i], 4).tolist()}) shows no "
-                                   f"edge longer than the minimum length; lower min_length")
-        norm = normalisation_of(xy)
-        seg_2d.append(norm.apply(xy).astype(np.float32))
-        norm_centers.append(norm.center)
-        norm_scales.append(norm.scale)
-    counts = [len(s) for s in seg_2d]
-    seg_2d = np.concatenate(seg_2d)
-    return AspectGraph(
-        step_sha256=part.sha256, params=params, model_center=np.asarray(part.center, dtype=np.float64),
-        model_diameter=float(part.diameter), n_faces=int(part.n_faces),
-        view_directions=np.asarray(directions, dtype=np.float64), view_ups=np.asarray(ups, dtype=np.float64),
-        view_rotations=np.asarray(rotations, dtype=np.float64),
-        seg_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-        seg_2d=seg_2d, seg_3d=np.concatenate([s for s, _ in views]).astype(np.float64),
-        seg_kind=np.concatenate([k for _, k in views]).astype(np.uint8),
-        norm_centers=np.array(norm_centers, dtype=np.float64), norm_scales=np.array(norm_scales, dtype=np.float64),
-        tetrads=tetrads(seg_2d.astype(np.float64)).astype(np.float32))

@@ -28,14 +28,17 @@ import numpy as np  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
-from brepose_ros import shapes  # noqa: E402
-from brepose_ros.aspect_graph import DEFAULT_STEP_DEG, AspectGraph, AspectGraphError, compile_aspect_graph  # noqa: E402
-from brepose_ros.bags import write_scene_bag  # noqa: E402
-from brepose_ros.cad import load_step, tessellate  # noqa: E402
-from brepose_ros.evaluation import ModelPoints, pose_errors, summarise, write_predictions  # noqa: E402
-from brepose_ros.node import EstimatorNode  # noqa: E402
-from brepose_ros.ros_io import Player, PoseRecorder, RosSession, bag_frames, image_from_msg, scene_names  # noqa: E402
-from brepose_ros.scenes import SceneConfig, generate_scene, load_scene  # noqa: E402
+from brepose_ros.synthetic import shapes  # noqa: E402
+from brepose_ros.offline.compiler import DEFAULT_STEP_DEG, compile_aspect_graph  # noqa: E402
+from brepose_ros.aspect_graph import AspectGraph, AspectGraphError  # noqa: E402
+from brepose_ros.ros.bags import write_scene_bag  # noqa: E402
+from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
+from brepose_ros.evaluation.metrics import ModelPoints, pose_errors, summarise, write_predictions  # noqa: E402
+from brepose_ros.ros.node import EstimatorNode  # noqa: E402
+from brepose_ros.ros.replay import Player, PoseRecorder, RosSession, bag_frames, scene_names  # noqa: E402
+from brepose_ros.ros.messages import image_from_msg  # noqa: E402
+from brepose_ros.synthetic.scenes import SceneConfig, generate_scene  # noqa: E402
+from brepose_ros.scene_folder import load_scene  # noqa: E402
 
 PART = "sample_bracket"
 

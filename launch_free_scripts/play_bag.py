@@ -14,8 +14,8 @@ import argparse
 import statistics
 import sys
 
-from brepose_ros.bags import BagError
-from brepose_ros.ros_io import Player, RosSession, bag_frames
+from brepose_ros.ros.bags import BagError
+from brepose_ros.ros.replay import Player, RosSession, bag_frames
 
 
 def main() -> int:

@@ -15,8 +15,8 @@ import sys
 import threading
 import time
 
-from brepose_ros.evaluation import write_predictions
-from brepose_ros.ros_io import PoseRecorder, RosSession, scene_names
+from brepose_ros.evaluation.metrics import write_predictions
+from brepose_ros.ros.replay import PoseRecorder, RosSession, scene_names
 
 
 def main() -> int:

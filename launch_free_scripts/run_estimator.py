@@ -11,7 +11,7 @@ confines discovery to one process.
 import sys
 from pathlib import Path
 
-from brepose_ros.node import main
+from brepose_ros.ros.node import main
 
 DEFAULT_PARAMS = Path(__file__).resolve().parents[1] / "config" / "node.yaml"
 

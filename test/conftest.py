@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from brepose_ros import shapes
+from brepose_ros.synthetic import shapes
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"

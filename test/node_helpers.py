@@ -1,5 +1,5 @@
 """In-process rclpy harness for the node tests (../shared/ROS2_ON_PIP.md): a fresh context per
-test with the node's own executor spinning in a daemon thread (``ros_io.RosSession``), and a
+test with the node's own executor spinning in a daemon thread (``ros.replay.RosSession``), and a
 probe node that publishes images and collects what the estimator node answers.
 """
 from __future__ import annotations
@@ -17,9 +17,9 @@ from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
 from brepose_ros.camera import Camera  # noqa: E402
-from brepose_ros.node import EstimatorNode  # noqa: E402
-from brepose_ros.ros_io import (SENSOR_QOS, DiagnosticsListener, RosSession, camera_info_msg,  # noqa: E402
-                                image_msg, stamp_from_ns, stamp_ns, wait_until)
+from brepose_ros.ros.node import EstimatorNode  # noqa: E402
+from brepose_ros.ros.messages import SENSOR_QOS, camera_info_msg, image_msg, stamp_from_ns, stamp_ns  # noqa: E402
+from brepose_ros.ros.replay import DiagnosticsListener, RosSession, wait_until  # noqa: E402
 
 TIMEOUT = 10.0
 FRAME = "camera_optical_frame"

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from brepose_ros import shapes
-from brepose_ros.aspect_graph import AspectGraph, AspectGraphError, compile_aspect_graph
-from brepose_ros.cad import load_step
+from brepose_ros.synthetic import shapes
+from brepose_ros.aspect_graph import AspectGraph, AspectGraphError
+from brepose_ros.offline.compiler import compile_aspect_graph
+from brepose_ros.offline.cad import load_step
 from brepose_ros.geometry import look_at_rotation, normalize
-from brepose_ros.hidden_lines import METHODS, OUTLINE, SHARP, HiddenLineRemover, view_coordinates
+from brepose_ros.offline.hidden_lines import METHODS, OUTLINE, SHARP, HiddenLineRemover, view_coordinates
 from brepose_ros.metric_space import normalisation_of, tetrads
 from brepose_ros.viewsphere import fibonacci_directions, lonlat_directions, nearest_views
 
@@ -122,7 +123,7 @@ def occt_2d_edges(shape, rotation):
     from OCP.TopExp import TopExp_Explorer
     from OCP.TopoDS import TopoDS
 
-    from brepose_ros.hidden_lines import _projector
+    from brepose_ros.offline.hidden_lines import _projector
 
     algo = HLRBRep_Algo()
     algo.Add(shape)

@@ -8,11 +8,12 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from brepose_ros.bags import START_NS, BagError, read_bag, write_bag, write_scene_bag
+from brepose_ros.ros.bags import START_NS, BagError, read_bag, write_bag, write_scene_bag
 from brepose_ros.camera import Camera
 from brepose_ros.cli import bag as bag_cli
 from brepose_ros.image_codec import decode_image, encode_image
-from brepose_ros.scenes import SceneConfig, generate_scene, load_scene
+from brepose_ros.synthetic.scenes import SceneConfig, generate_scene
+from brepose_ros.scene_folder import load_scene
 
 STORE = get_typestore(Stores.ROS2_KILTED)
 CAMERA = Camera(300.0, 310.0, 80.5, 59.0, 160, 120, (0.1, -0.05, 0.001, 0.002, 0.01))

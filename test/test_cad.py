@@ -5,7 +5,7 @@ import cadquery as cq
 import numpy as np
 import pytest
 
-from brepose_ros.cad import CadError, load_step
+from brepose_ros.offline.cad import CadError, load_step
 
 
 def test_builtin_box_is_loaded_in_metres(builtin_step):

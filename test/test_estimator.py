@@ -9,13 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from brepose_ros.aspect_graph import compile_aspect_graph
-from brepose_ros.cad import load_step, tessellate
+from brepose_ros.offline.compiler import compile_aspect_graph
+from brepose_ros.offline.cad import load_step, tessellate
 from brepose_ros.camera import Camera
 from brepose_ros.cli import estimate as estimate_cli
-from brepose_ros.estimator import Estimator
-from brepose_ros.evaluation import ModelPoints, evaluate_scene, scene_summary
-from brepose_ros.scenes import SceneConfig, generate_scene, load_scene
+from brepose_ros.online.estimator import Estimator
+from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene, scene_summary
+from brepose_ros.synthetic.scenes import SceneConfig, generate_scene
+from brepose_ros.scene_folder import load_scene
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +114,7 @@ def test_estimate_command_reports_a_refused_graph(tmp_path, capsys):
 
 def test_climb_starts_skip_poses_already_taken():
     """Candidates that refined into one pose are climbed once; the next distinct one is taken."""
-    from brepose_ros.estimator import Candidate, distinct_poses
+    from brepose_ros.online.estimator import Candidate, distinct_poses
     from brepose_ros.geometry import rot_z
 
     t = np.array([0.0, 0.0, 0.3])

@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from brepose_ros.image_edges import EdgeParams, canny_edges, canny_thresholds, extract_segments, merge_segments, to_gray
+from brepose_ros.online.image_edges import EdgeParams, canny_edges, canny_thresholds, extract_segments, merge_segments, to_gray
 
 BACKGROUND = 110.0
 SIZE = (480, 640)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from brepose_ros import matching
+from brepose_ros.online import matching
 from brepose_ros.metric_space import normalisation_of, tetrads, wrap_angle
 from brepose_ros.params import MatchParams
 

@@ -24,15 +24,16 @@ from rcl_interfaces.msg import ParameterType
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
-from brepose_ros.aspect_graph import compile_aspect_graph
+from brepose_ros.offline.compiler import compile_aspect_graph
 from brepose_ros.camera import Camera
-from brepose_ros.estimator import Estimate
+from brepose_ros.online.estimator import Estimate
 from brepose_ros.geometry import matrix_from_quaternion, rotation_angle_deg
-from brepose_ros.node import StartupError, check_params_file, main
+from brepose_ros.ros.node import StartupError, check_params_file, main
 from brepose_ros.params import EstimatorParams
-from brepose_ros.overlay import FOUND as FOUND_COLOUR
-from brepose_ros.ros_io import camera_info_msg, image_from_msg, pose_from_msg, stamp_ns, status_values, wait_until
-from brepose_ros.scenes import SceneConfig, generate_scene
+from brepose_ros.evaluation.overlay import FOUND as FOUND_COLOUR
+from brepose_ros.ros.messages import camera_info_msg, image_from_msg, pose_from_msg, stamp_ns, status_values
+from brepose_ros.ros.replay import wait_until
+from brepose_ros.synthetic.scenes import SceneConfig, generate_scene
 from node_helpers import FRAME, TIMEOUT, Harness
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
@@ -145,7 +146,7 @@ def test_console_script_stops_cleanly_on_sigterm(sample, tmp_path):
     params.write_text(f"estimator:\n  ros__parameters:\n    graphs: [{sample.graph}]\n")
     env = {**os.environ, "ROS_DOMAIN_ID": str(random.randint(100, 200))}
     env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
-    process = subprocess.Popen([sys.executable, "-m", "brepose_ros.node", "--params-file", str(params)],
+    process = subprocess.Popen([sys.executable, "-m", "brepose_ros.ros.node", "--params-file", str(params)],
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True)
     try:
         assert "estimating sample_bracket" in process.stdout.readline()

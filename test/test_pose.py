@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from brepose_ros import pose
+from brepose_ros.online import pose
 from brepose_ros.geometry import rot_z, rotation_angle_deg
 
 
@@ -196,7 +196,7 @@ def test_polish_pose_pulls_a_pose_three_percent_too_far_onto_the_edge_pixels():
     """A cube's three visible faces drawn in three grey levels: polishing a pose 3 % too
     far away and turned by a degree on the image's Canny pixels recovers the true pose."""
     from brepose_ros.camera import Camera
-    from brepose_ros.image_edges import EdgeParams, detect_edges
+    from brepose_ros.online.image_edges import EdgeParams, detect_edges
 
     camera = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)
     R_true, t_true = cv2.Rodrigues(np.array([0.5, -0.6, 0.3]))[0], np.array([0.01, -0.005, 0.3])

@@ -7,11 +7,11 @@ import cv2
 import numpy as np
 import pytest
 
-from brepose_ros.cad import load_step, tessellate
+from brepose_ros.offline.cad import load_step, tessellate
 from brepose_ros.camera import Camera
 from brepose_ros.geometry import look_at_rotation, random_rotation, rot_z
-from brepose_ros.render import Placed, rasterize, render
-from brepose_ros.scenes import box_mesh
+from brepose_ros.synthetic.render import Placed, rasterize, render
+from brepose_ros.synthetic.scenes import box_mesh
 
 CAMERA = Camera.from_fov(640, 480, 600.0)
 ONE_PIXEL = np.ones((3, 3), np.uint8)

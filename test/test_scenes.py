@@ -8,10 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from brepose_ros.cad import load_step, tessellate
+from brepose_ros.offline.cad import load_step, tessellate
 from brepose_ros.cli import render as render_cli
-from brepose_ros.render import Placed, rasterize
-from brepose_ros.scenes import SceneConfig, SceneError, generate_scene, load_scene
+from brepose_ros.synthetic.render import Placed, rasterize
+from brepose_ros.synthetic.scenes import SceneConfig, generate_scene
+from brepose_ros.scene_folder import SceneError, load_scene
 
 SMALL = dict(width=320, height=240, fx=300.0)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..bags import FRAME_ID, STORAGES, write_scene_bag
+from ..ros.bags import FRAME_ID, STORAGES, write_scene_bag
 from .common import run
 
 

@@ -5,7 +5,7 @@ import sys
 from typing import Callable
 
 from ..aspect_graph import AspectGraphError
-from ..cad import CadError
+from ..offline.cad import CadError
 from ..camera import CameraError
 
 #: errors that are the user's input, not a bug: print the message, exit 2

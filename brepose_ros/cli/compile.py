@@ -12,8 +12,9 @@ import argparse
 import time
 from pathlib import Path
 
-from ..aspect_graph import DEFAULT_STEP_DEG, compile_aspect_graph, default_path
-from ..hidden_lines import DEFAULT_CHORD_TOLERANCE, DEFAULT_METHOD, DEFAULT_MIN_LENGTH, METHODS
+from ..aspect_graph import default_path
+from ..offline.compiler import DEFAULT_STEP_DEG, compile_aspect_graph
+from ..offline.hidden_lines import DEFAULT_CHORD_TOLERANCE, DEFAULT_METHOD, DEFAULT_MIN_LENGTH, METHODS
 from .common import run
 
 

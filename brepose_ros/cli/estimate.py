@@ -8,8 +8,8 @@ import cv2
 
 from ..aspect_graph import AspectGraph
 from ..camera import Camera
-from ..estimator import Estimator
-from ..evaluation import prediction_entry, write_predictions
+from ..online.estimator import Estimator
+from ..evaluation.metrics import prediction_entry, write_predictions
 from ..params import EstimatorParams
 from .common import run
 

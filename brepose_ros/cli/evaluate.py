@@ -9,13 +9,13 @@ from pathlib import Path
 import cv2
 
 from ..aspect_graph import AspectGraph
-from ..cad import load_step, tessellate
-from ..estimator import Estimator
-from ..evaluation import (ModelPoints, evaluate_scene, format_summary, plot_evaluation,
+from ..offline.cad import load_step, tessellate
+from ..online.estimator import Estimator
+from ..evaluation.metrics import (ModelPoints, evaluate_scene, format_summary, plot_evaluation,
                           prediction_entry, scene_summary, write_predictions)
-from ..overlay import draw_overlay
+from ..evaluation.overlay import draw_overlay
 from ..params import EstimatorParams
-from ..scenes import load_scene
+from ..scene_folder import load_scene
 from .common import run
 
 

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import shapes
-from ..scenes import SceneConfig, generate_scene
+from ..synthetic import shapes
+from ..synthetic.scenes import SceneConfig, generate_scene
 from .common import run
 
 BUILTIN_PREFIX = "builtin:"

@@ -34,58 +34,13 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .documented import doc
-
-DETECTORS = ("hough", "lsd")
+from ..params import DETECTORS, EdgeParams
 
 #: median / scale of a Rayleigh distribution: the gradient magnitude of pure Gaussian noise
 _RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
 #: Canny takes int16 derivatives; scaling the float Sobel output keeps sub-grey-level steps
 #: (3x3 Sobel of a 0..255 image stays within +-1020, times 16 within int16)
 _DERIVATIVE_SCALE = 16.0
-
-
-@dataclass(frozen=True)
-class EdgeParams:
-    """Every threshold of the image edge stage; lengths in pixels unless named ``*_fraction``."""
-
-    detector: str = doc("'hough' (Canny + HoughLinesP, the paper's method) or 'lsd' (OpenCV LSD)", "hough")
-    blur_size: int = doc("odd Gaussian kernel size before edge detection; 1 disables the blur", 5)
-    blur_sigma: float = doc("Gaussian sigma, pixels; 0 derives it from blur_size", 0.0)
-    canny_noise_factor: float = doc("Canny high threshold in units of the gradient noise level (median gradient / 1.18)", 5.0)
-    canny_low_ratio: float = doc("Canny low threshold as a share of the high one", 0.4)
-    canny_min_high: float = doc("floor of the Canny high threshold (Sobel magnitude of a 0..255 image) for noise-free images", 6.0)
-    hough_rho: float = doc("HoughLinesP distance resolution, pixels", 1.0)
-    hough_theta_deg: float = doc("HoughLinesP angle resolution, degrees", 1.0)
-    hough_vote_ratio: float = doc("HoughLinesP accumulator threshold as a share of the minimum line length", 0.5)
-    raw_min_length_fraction: float = doc(
-        "shortest raw segment before merging (HoughLinesP minLineLength; shorter LSD pieces are dropped), "
-        "share of the image diagonal", 0.015)
-    hough_max_gap: float = doc("largest gap HoughLinesP bridges inside one segment, pixels", 3.0)
-    merge_angle_deg: float = doc("pieces of one edge differ in direction by at most this, degrees", 2.0)
-    merge_distance: float = doc("both end points of a piece lie this close to the edge's fitted line, pixels", 2.0)
-    merge_gap: float = doc("largest gap along the line between pieces of one edge, pixels", 15.0)
-    refine: bool = doc("refit each merged Hough segment to the Canny pixels along it and extend it over them", True)
-    min_length_fraction: float = doc("merged segments shorter than this share of the image diagonal are dropped", 0.03)
-    max_segments: int = doc("at most this many merged segments are kept, longest first", 200)
-
-    def __post_init__(self):
-        if self.detector not in DETECTORS:
-            raise ValueError(f"detector must be one of {DETECTORS}, got {self.detector!r}")
-        if self.blur_size < 1 or self.blur_size % 2 == 0:
-            raise ValueError(f"blur_size must be a positive odd integer, got {self.blur_size}")
-        positive = ("canny_noise_factor", "canny_min_high", "hough_rho", "hough_theta_deg",
-                    "hough_vote_ratio", "merge_angle_deg", "max_segments")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if not 0 < self.canny_low_ratio <= 1:
-            raise ValueError(f"canny_low_ratio must be in (0, 1], got {self.canny_low_ratio}")
-        non_negative = ("blur_sigma", "raw_min_length_fraction", "hough_max_gap",
-                        "merge_distance", "merge_gap", "min_length_fraction")
-        for name in non_negative:
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
 
 
 @dataclass

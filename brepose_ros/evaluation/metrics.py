@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from .geometry import direction_to, rotation_angle_deg
-from .viewsphere import nearest_views
+from ..geometry import direction_to, rotation_angle_deg
+from ..viewsphere import nearest_views
 
 
 def viewing_direction(R: np.ndarray) -> np.ndarray:
@@ -137,7 +137,7 @@ class ImageResult:
 
 
 def evaluate_scene(scene, estimator, model: ModelPoints, on_image=None) -> list[ImageResult]:
-    """Run ``estimator`` over a loaded scene (``scenes.load_scene``) and measure every image."""
+    """Run ``estimator`` over a loaded scene (``scene_folder.load_scene``) and measure every image."""
     graph = estimator.graph
     results = []
     for entry in scene.entries:

@@ -28,13 +28,13 @@ import cv2
 import numpy as np
 
 from . import matching, pose
-from .aspect_graph import AspectGraph
-from .camera import Camera
-from .geometry import rotation_angle_deg, rotation_between
+from ..aspect_graph import AspectGraph
+from ..camera import Camera
+from ..geometry import rotation_angle_deg, rotation_between
 from .image_edges import detect_edges
-from .metric_space import outline_normalisation as normalisation_of
-from .metric_space import segment_lengths
-from .params import EstimatorParams
+from ..metric_space import outline_normalisation as normalisation_of
+from ..metric_space import segment_lengths
+from ..params import EstimatorParams
 
 
 @dataclass

@@ -52,8 +52,8 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .metric_space import segment_lengths
-from .params import MatchParams
+from ..metric_space import segment_lengths
+from ..params import MatchParams
 from .pose import line_equations, nearest_lines
 
 ORIENTATION_BINS = 72  # 2.5 degree bins over [0, pi)

@@ -26,8 +26,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from .camera import Camera
-from .geometry import rot_z, rotation_between
+from ..camera import Camera
+from ..geometry import rot_z, rotation_between
 
 
 def undistort_points(points_px: np.ndarray, camera: Camera) -> np.ndarray:

@@ -18,9 +18,9 @@ from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
-from .camera import Camera, CameraError
-from .image_codec import camera_from_info, decode_image, encode_image
-from .scenes import load_scene
+from ..camera import Camera, CameraError
+from ..image_codec import camera_from_info, decode_image, encode_image
+from ..scene_folder import load_scene
 
 IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"

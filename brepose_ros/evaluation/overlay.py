@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .estimator import Estimate
+from ..online.estimator import Estimate
 
 FOUND = (0, 220, 0)
 NOT_FOUND = (0, 0, 255)

@@ -6,11 +6,12 @@ shape is scaled by 1e-3 once, here; everything downstream works in metres
 """
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from ..aspect_graph import file_sha256
 
 #: Refuse files larger than this before parsing (a STEP part of a few hundred faces is
 #: well under 10 MB; a whole assembly or a wrong file is what larger ones usually are).
@@ -34,14 +35,6 @@ class Part:
     diameter: float  # bounding-box diagonal, metres (an upper bound of the true diameter)
     n_faces: int
     n_solids: int
-
-
-def file_sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _read_step_shape(path: Path):

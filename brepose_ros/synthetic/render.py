@@ -17,9 +17,9 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from .cad import Mesh
-from .camera import Camera
-from .geometry import normalize
+from ..offline.cad import Mesh
+from ..camera import Camera
+from ..geometry import normalize
 
 #: Triangles with a vertex closer than this to the camera plane (metres) are dropped whole:
 #: there is no near-plane clipping, so scenes keep every object in front of the camera.

@@ -21,7 +21,7 @@ Threads: the subscription callbacks only store the newest frame; one worker thre
 estimator on it, so a slow image never builds a backlog. The executor threads
 (``executor_threads``) keep callbacks and parameter services responsive meanwhile; the
 estimator spreads the views of one image over its own ``matching.workers`` threads.
-``ros_io.make_executor`` builds the executor with a work-around for a busy loop of rclpy
+``messages.make_executor`` builds the executor with a work-around for a busy loop of rclpy
 9.1's MultiThreadedExecutor.
 
 Parameters: ``graphs``, ``part_names``, ``fx``/``fy``/``cx``/``cy``, ``executor_threads``,
@@ -53,14 +53,14 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
 
-from .aspect_graph import SUFFIX as GRAPH_SUFFIX
-from .aspect_graph import AspectGraph
-from .camera import Camera, CameraError
-from .estimator import Estimate, Estimator
-from .overlay import draw_overlay
-from .params import EstimatorParams, field_docs
-from .image_codec import camera_from_info
-from .ros_io import (DIAGNOSTICS_TOPIC, LATEST_ONLY, diagnostic_status, image_from_msg, image_msg,
+from ..aspect_graph import SUFFIX as GRAPH_SUFFIX
+from ..aspect_graph import AspectGraph
+from ..camera import Camera, CameraError
+from ..online.estimator import Estimate, Estimator
+from ..evaluation.overlay import draw_overlay
+from ..params import EstimatorParams, field_docs
+from ..image_codec import camera_from_info
+from .messages import (DIAGNOSTICS_TOPIC, LATEST_ONLY, diagnostic_status, image_from_msg, image_msg,
                      make_executor, pose_msg)
 
 NODE_NAME = "estimator"
