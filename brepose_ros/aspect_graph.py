@@ -109,6 +109,20 @@ class AspectGraph:
         """Rows of seg_2d, seg_3d, seg_kind and tetrads that belong to view ``i``."""
         return slice(int(self.seg_offsets[i]), int(self.seg_offsets[i + 1]))
 
+    def nearest_views(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(B,) index of the view nearest to the direction the camera of each pose R
+        (B, 3, 3), t (B, 3) sees the part from: ``geometry.direction_to`` without its
+        normalisation, which cannot change the largest product."""
+        return np.argmax(self.view_directions @ (self.model_center + np.einsum("bji,bj->bi", R, t)).T, axis=0)
+
+    def nearest_view(self, R: np.ndarray, t: np.ndarray) -> int:
+        """``nearest_views`` of one pose."""
+        return int(self.nearest_views(R[None], t[None])[0])
+
+    def visible_segments(self, R: np.ndarray, t: np.ndarray) -> slice:
+        """Rows of the segments visible from the view nearest to the pose."""
+        return self.view_slice(self.nearest_view(R, t))
+
     def segments_of(self, i: int) -> AspectView:
         rows = self.view_slice(i)
         return AspectView(i, self.view_directions[i], self.view_rotations[i],

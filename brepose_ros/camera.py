@@ -1,11 +1,25 @@
-"""Pinhole camera intrinsics and the camera.json file of ../shared/CONVENTIONS.md."""
+"""Pinhole camera intrinsics, the camera.json file of ../shared/CONVENTIONS.md, and the
+projections between model points, pixels and normalised camera coordinates.
+
+Normalised camera coordinates are ((u - cx) / fx, (v - cy) / fy) of the undistorted
+pixel: the online stages match and refine there, where a pose projects by a plain
+division, and go back to pixels (with distortion) only to look at the image.
+
+The virtual camera: an off-centre part is seen along the ray through it, not along the
+optical axis. Turning the rays so that this ray becomes the optical axis (``R_align``, a
+pure rotation of the rays, exact for a pinhole camera) shows the part centred, as the
+orthographic views of the aspect graph see it.
+"""
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
+
+from .geometry import rotation_between
 
 
 class CameraError(ValueError):
@@ -48,10 +62,38 @@ class Camera:
         return any(abs(d) > 0 for d in self.distortion)
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
-        """Pixel coordinates of camera-frame points (no distortion; use cv2 for that)."""
+        """Pixel coordinates of camera-frame points, without distortion (``project_model``
+        applies it)."""
         p = np.asarray(points_cam, dtype=float)
         return np.stack([self.fx * p[..., 0] / p[..., 2] + self.cx,
                          self.fy * p[..., 1] / p[..., 2] + self.cy], axis=-1)
+
+    def project_model(self, points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Pixel coordinates, with the camera's distortion, of model points (..., 3) seen
+        with pose (R, t); the shape is kept."""
+        pts = np.asarray(points, dtype=float)
+        flat = pts.reshape(-1, 3)
+        if len(flat) == 0:
+            return np.zeros(pts.shape[:-1] + (2,))
+        rvec, _ = cv2.Rodrigues(np.asarray(R, dtype=float))
+        out, _ = cv2.projectPoints(flat, rvec, np.asarray(t, dtype=float), self.K, self.dist_coeffs)
+        return out.reshape(pts.shape[:-1] + (2,))
+
+    def undistort(self, points_px: np.ndarray) -> np.ndarray:
+        """Pixels (..., 2), e.g. segments (N, 2, 2), in normalised camera coordinates; the
+        shape is kept."""
+        pts = np.asarray(points_px, dtype=float)
+        flat = pts.reshape(-1, 1, 2)
+        if len(flat) == 0:
+            return np.zeros(pts.shape)
+        if self.has_distortion:
+            return cv2.undistortPoints(flat, self.K, self.dist_coeffs).reshape(pts.shape)
+        return ((flat.reshape(-1, 2) - [self.cx, self.cy]) / [self.fx, self.fy]).reshape(pts.shape)
+
+    @property
+    def focal(self) -> float:
+        """The mean focal length: pixels per normalised unit, for tolerances given in pixels."""
+        return (self.fx + self.fy) / 2.0
 
     def to_dict(self) -> dict:
         d = {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
@@ -94,3 +136,25 @@ class Camera:
     def from_fov(cls, width: int, height: int, fx: float) -> "Camera":
         """A distortion-free camera with square pixels and the principal point at the centre."""
         return cls(fx, fx, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
+
+
+def project_normalised(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Normalised camera coordinates of model points (..., 3) seen with pose (R, t); a
+    point behind the camera divides by 1e-9 rather than by its depth."""
+    cam = np.asarray(points) @ R.T + t
+    return cam[..., :2] / np.maximum(cam[..., 2:3], 1e-9)
+
+
+def virtual_alignment(center_normalised: np.ndarray) -> np.ndarray:
+    """R_align: turns the virtual camera's optical axis onto the ray through the centre."""
+    ray = np.array([center_normalised[0], center_normalised[1], 1.0])
+    return rotation_between(np.array([0.0, 0.0, 1.0]), ray)
+
+
+def to_virtual(normalised: np.ndarray, R_align: np.ndarray) -> np.ndarray:
+    """Points (..., 2), e.g. segments (N, 2, 2), seen by the virtual camera R_align^T (rays
+    rotated, then re-projected); the shape is kept."""
+    normalised = np.asarray(normalised, dtype=float)
+    pts = normalised.reshape(-1, 2)
+    rays = np.concatenate([pts, np.ones((len(pts), 1))], axis=1) @ R_align  # R_align^T r
+    return (rays[:, :2] / rays[:, 2:3]).reshape(normalised.shape)

@@ -114,7 +114,7 @@ def test_estimate_command_reports_a_refused_graph(tmp_path, capsys):
 
 def test_climb_starts_skip_poses_already_taken():
     """Candidates that refined into one pose are climbed once; the next distinct one is taken."""
-    from brepose_ros.online.estimator import Candidate, distinct_poses
+    from brepose_ros.online.refinement import Candidate, distinct_poses
     from brepose_ros.geometry import rot_z
 
     t = np.array([0.0, 0.0, 0.3])

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from brepose_ros.online import matching
+from brepose_ros.online import matching, prefilter
 from brepose_ros.metric_space import normalisation_of, tetrads, wrap_angle
 from brepose_ros.params import MatchParams
 
@@ -47,14 +47,18 @@ def test_normalisation_removes_translation_and_scale():
     assert np.allclose(a, b)
 
 
+def histogram(features):
+    return prefilter.orientation_histogram(features.orientations, features.lengths)
+
+
 def test_rotation_candidates_contain_true_rotation():
     rng = np.random.default_rng(3)
     segs = random_shape(rng)
     for angle in (0.3, 2.0, 4.0):
         model = matching.describe(segs)
         image = matching.describe(similarity(segs, 1.0, angle, 0.0))
-        spectra = matching.orientation_spectra(model.orientation_histogram[None])
-        phis = matching.rotation_candidates(spectra, image.orientation_histogram, 3)[0]
+        spectra = prefilter.orientation_spectra(histogram(model)[None])
+        phis = prefilter.rotation_candidates(spectra, histogram(image), 3)[0]
         assert np.min(np.abs(wrap_angle(phis - angle))) < np.radians(3)
 
 
@@ -226,25 +230,25 @@ def test_align_to_lines_pulls_each_set_onto_the_image():
 def test_prefilter_scores_match_a_plain_gather():
     rng = np.random.default_rng(8)
     views = [matching.describe(random_shape(rng, 10) * 1.5) for _ in range(20)]
-    prefilter = matching.ChamferPrefilter(views)
+    chamfer = prefilter.ChamferPrefilter([v.segments for v in views])
     region = matching.describe(random_shape(rng, 12) * 1.5)
-    maps = prefilter.distance_maps(*matching.spread_points(region.segments, 2000))
-    spectra = matching.orientation_spectra(np.stack([v.orientation_histogram for v in views]))
-    phis = matching.rotation_candidates(spectra, region.orientation_histogram, 2)
-    f = matching.ChamferPrefilter
+    maps = chamfer.distance_maps(*prefilter.spread_points(region.segments, 2000))
+    spectra = prefilter.orientation_spectra(np.stack([histogram(v) for v in views]))
+    phis = prefilter.rotation_candidates(spectra, histogram(region), 2)
+    f = prefilter.ChamferPrefilter
     c, s = np.cos(phis.astype(np.float32))[..., None], np.sin(phis.astype(np.float32))[..., None]
-    x, y = prefilter.points[:, None, :, 0], prefilter.points[:, None, :, 1]
+    x, y = chamfer.points[:, None, :, 0], chamfer.points[:, None, :, 1]
     xr, yr = c * x - s * y, s * x + c * y
     cell = 2.0 * f.EXTENT / f.GRID
     col = np.clip(((xr + f.EXTENT) / cell).astype(int), 0, f.GRID - 1)
     row = np.clip(((yr + f.EXTENT) / cell).astype(int), 0, f.GRID - 1)
-    ori = np.mod(prefilter.orientations[:, None, :] + phis.astype(np.float32)[..., None], np.pi)
+    ori = np.mod(chamfer.orientations[:, None, :] + phis.astype(np.float32)[..., None], np.pi)
     b = (ori / np.pi * f.ORIENT_BINS).astype(int) % f.ORIENT_BINS
     outside = (np.abs(xr) > f.EXTENT) | (np.abs(yr) > f.EXTENT)
     want = np.where(outside, f.TRUNCATE, maps[b, row, col]).mean(axis=2)
-    assert np.array_equal(prefilter.scores(maps, phis), want)
+    assert np.array_equal(chamfer.scores(maps, phis), want)
     # any angle, not only those in [0, 2 pi) that rotation_candidates gives
-    assert np.allclose(prefilter.scores(maps, phis - 4 * np.pi), want, atol=1e-6)
+    assert np.allclose(chamfer.scores(maps, phis - 4 * np.pi), want, atol=1e-6)
 
 
 def test_prefilter_shortlist_keeps_the_best_pairs_of_the_full_score():
@@ -253,24 +257,24 @@ def test_prefilter_shortlist_keeps_the_best_pairs_of_the_full_score():
     rng = np.random.default_rng(12)
     shapes = [random_shape(rng, 10) * 1.5 for _ in range(400)]
     views = [matching.describe(s) for s in shapes]
-    prefilter = matching.ChamferPrefilter(views)
+    chamfer = prefilter.ChamferPrefilter([v.segments for v in views])
     region = matching.describe(similarity(shapes[123], 1.0, 0.7, np.zeros(2)))
-    maps = prefilter.distance_maps(*matching.spread_points(region.segments, 2000))
-    spectra = matching.orientation_spectra(np.stack([v.orientation_histogram for v in views]))
-    phis = matching.rotation_candidates(spectra, region.orientation_histogram, 2)
-    full = prefilter.scores(maps, phis)
-    views_kept, which = prefilter.shortlist(maps, phis, 5)
+    maps = chamfer.distance_maps(*prefilter.spread_points(region.segments, 2000))
+    spectra = prefilter.orientation_spectra(np.stack([histogram(v) for v in views]))
+    phis = prefilter.rotation_candidates(spectra, histogram(region), 2)
+    full = chamfer.scores(maps, phis)
+    views_kept, which = chamfer.shortlist(maps, phis, 5)
     assert len(views_kept) == 5 and views_kept[np.argmin(full[views_kept, which])] == 123
     assert full[123].min() == full.min()
     # with a coarse stage that keeps everything, the shortlist is the full score's best 5
-    keep_all = matching.ChamferPrefilter(views)
+    keep_all = prefilter.ChamferPrefilter([v.segments for v in views])
     keep_all.COARSE_KEEP = full.size
     v_all, w_all = keep_all.shortlist(maps, phis, 5)
     assert sorted(full[v_all, w_all]) == sorted(np.sort(full.ravel())[:5])
 
 
 def test_prefilter_maps_keep_directions_apart_and_drop_points_outside():
-    f = matching.ChamferPrefilter([matching.describe(random_shape(np.random.default_rng(1), 6))])
+    f = prefilter.ChamferPrefilter([random_shape(np.random.default_rng(1), 6)])
     cell = 2 * f.EXTENT / f.GRID
 
     def index(v):

@@ -4,8 +4,10 @@ import cv2
 import numpy as np
 import pytest
 
-from brepose_ros.online import pose
+from brepose_ros.camera import project_normalised
 from brepose_ros.geometry import rot_z, rotation_angle_deg
+from brepose_ros.online import refinement, scoring
+from brepose_ros.online.lines2d import nearest_lines
 
 
 def random_segments(rng, n, scale=1.0):
@@ -16,7 +18,7 @@ def exact_line_matches(rng, n, R, t):
     """n model segments and the image lines they project onto under (R, t), lines longer
     than the projected edges: only the lines matter."""
     model_3d = rng.uniform(-0.05, 0.05, size=(n, 2, 3))
-    image_2d = pose.project(model_3d, R, t)
+    image_2d = project_normalised(model_3d, R, t)
     return model_3d, image_2d + np.array([-0.3, 0.3])[None, :, None] * (image_2d[:, 1:] - image_2d[:, :1])
 
 
@@ -31,7 +33,7 @@ def test_refine_poses_recovers_each_pose_of_a_batch_from_exact_line_matches():
     R0.append(np.eye(3)), t0.append(np.array([0.0, 0.0, 1.0]))
     pairs.append(exact_line_matches(rng, 2, np.eye(3), np.array([0.0, 0.0, 0.9])))
     spans = np.cumsum([0] + [len(m) for m, _ in pairs])
-    R, t = pose.refine_poses(np.array(R0), np.array(t0), np.concatenate([m for m, _ in pairs]),
+    R, t = refinement.refine_poses(np.array(R0), np.array(t0), np.concatenate([m for m, _ in pairs]),
                              np.concatenate([i for _, i in pairs]), spans, f_scale=0.01, iterations=30)
     assert np.abs(R[:2] - R_true).max() < 1e-8
     assert np.abs(t[:2] - t_true).max() < 1e-8
@@ -50,16 +52,17 @@ def test_a_batch_refines_and_associates_each_pose_to_the_same_bits_as_alone():
     t0 = np.array(t_true) + rng.normal(0, 0.01, (4, 3))
     model, image = np.concatenate([m for m, _ in pairs]), np.concatenate([i for _, i in pairs])
     spans = np.cumsum([0] + [len(m) for m, _ in pairs])
-    R, t = pose.refine_poses(R0, t0, model, image, spans, f_scale=0.002, iterations=3)
-    found = pose.associate_poses(model, spans, R0, t0, image, 0.01)
+    R, t = refinement.refine_poses(R0, t0, model, image, spans, f_scale=0.002, iterations=3)
+    found = refinement.associate_poses(model, spans, R0, t0, image, tolerance=0.01)
     for b, (m, i) in enumerate(pairs):
-        R_b, t_b = pose.refine_poses(R0[b:b + 1], t0[b:b + 1], m, i, np.array([0, len(m)]), 0.002, 3)
+        R_b, t_b = refinement.refine_poses(R0[b:b + 1], t0[b:b + 1], m, i, np.array([0, len(m)]),
+                                             f_scale=0.002, iterations=3)
         assert np.array_equal(R_b[0], R[b]) and np.array_equal(t_b[0], t[b])
-        alone = pose.associate(m, R0[b], t0[b], image, 0.01)
+        model_index, image_index, distances = nearest_lines(project_normalised(m, R0[b], t0[b]), image, 0.01)
         own = (found[0] >= spans[b]) & (found[0] < spans[b + 1])
-        assert np.array_equal(found[0][own] - spans[b], alone.model_index)
-        assert np.array_equal(found[1][own], alone.image_index)
-        assert np.array_equal(found[2][own], alone.distances)
+        assert np.array_equal(found[0][own] - spans[b], model_index)
+        assert np.array_equal(found[1][own], image_index)
+        assert np.array_equal(found[2][own], distances)
 
 
 def reference_nearest_lines(model_2d, image_2d, tolerance, max_angle_deg=10.0):
@@ -89,10 +92,10 @@ def test_outline_margin_has_a_floor_in_pixels():
     """A small pose's outline grows by at least MIN_MARGIN_PX, a large one by OUTLINE_MARGIN."""
     square = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
     for half in (10.0, 400.0):
-        grown = pose.EdgeEvidence.grown_outline(300.0 + half * square)
+        grown = scoring.EdgeEvidence.grown_outline(300.0 + half * square)
         radius = half * np.sqrt(2.0)
         margin = np.linalg.norm(grown[0] - 300.0) - radius
-        expected = max(pose.EdgeEvidence.OUTLINE_MARGIN * radius, pose.EdgeEvidence.MIN_MARGIN_PX)
+        expected = max(scoring.EdgeEvidence.OUTLINE_MARGIN * radius, scoring.EdgeEvidence.MIN_MARGIN_PX)
         assert margin == pytest.approx(expected)
 
 
@@ -104,7 +107,7 @@ def test_nearest_lines_matches_the_pairwise_definition():
     copies[::3] = copies[::3, :, :] * [1.0, 0.9]
     image = np.concatenate([copies, random_segments(rng, 15)])[rng.permutation(39)]
     model[5, 1] = model[5, 0]  # a degenerate model segment matches nothing
-    got = pose.nearest_lines(model, image, 0.05)
+    got = nearest_lines(model, image, 0.05)
     want = reference_nearest_lines(model, image, 0.05)
     assert len(want[0]) > 15
     for g, w in zip(got, want):
@@ -116,7 +119,7 @@ def test_chamfer_ball_dilation_is_the_thresholded_distance_transform():
     for radius in (0.0, 0.5, 1.0, 1.4, 2.0, 2.5, 3.0, 4.7, 9.0):
         edges = (rng.random((60, 80)) < 0.01).astype(np.uint8)
         dist = cv2.distanceTransform(np.where(edges > 0, 0, 255).astype(np.uint8), cv2.DIST_L2, 3)
-        assert np.array_equal(cv2.dilate(edges, pose.chamfer_ball(radius)) > 0, dist <= radius)
+        assert np.array_equal(cv2.dilate(edges, scoring.chamfer_ball(radius)) > 0, dist <= radius)
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +142,7 @@ def evidence_image():
 
 def reference_support(edge_map, gray, model_px, tolerance):
     """support as first written: one distance map per direction bin, three look-ups."""
-    ev = pose.EdgeEvidence(edge_map, gray)
+    ev = scoring.EdgeEvidence(edge_map, gray)
     smooth = cv2.GaussianBlur(gray.astype(np.float32), (5, 5), 0)
     dx, dy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0), cv2.Sobel(smooth, cv2.CV_32F, 0, 1)
     bins = (np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi) / np.pi * ev.BINS).astype(int) % ev.BINS
@@ -162,7 +165,7 @@ def reference_explained(edge_map, model_px, tolerance):
     """explained without the bounding-box crop: the whole image, a distance transform."""
     h, w = edge_map.shape
     pts = np.clip(model_px.reshape(-1, 2), -4.0 * max(h, w), 5.0 * max(h, w))
-    hull = pose.EdgeEvidence.grown_outline(pts)
+    hull = scoring.EdgeEvidence.grown_outline(pts)
     outline = np.zeros((h, w), np.uint8)
     cv2.fillConvexPoly(outline, np.round(hull).astype(np.int32), 1)
     inside = (edge_map > 0) & (outline > 0)
@@ -176,7 +179,7 @@ def reference_explained(edge_map, model_px, tolerance):
 @pytest.mark.parametrize("tolerance", [1.0, 2.0, 3.5])
 def test_edge_evidence_matches_the_distance_transform_definitions(evidence_image, tolerance):
     edge_map, gray, models = evidence_image
-    evidence = pose.EdgeEvidence(edge_map, gray)
+    evidence = scoring.EdgeEvidence(edge_map, gray)
     for model_px in models:
         assert evidence.support(model_px, tolerance) == pytest.approx(
             reference_support(edge_map, gray, model_px, tolerance), abs=1e-12)
@@ -186,7 +189,7 @@ def test_edge_evidence_matches_the_distance_transform_definitions(evidence_image
 
 def test_supports_of_a_batch_are_each_pose_alone(evidence_image):
     edge_map, gray, models = evidence_image
-    evidence = pose.EdgeEvidence(edge_map, gray)
+    evidence = scoring.EdgeEvidence(edge_map, gray)
     spans = np.cumsum([0] + [len(m) for m in models])
     together = evidence.supports(np.concatenate(models), spans, 2.0)
     assert [float(s) for s in together] == [evidence.support(m, 2.0) for m in models]
@@ -206,13 +209,14 @@ def test_polish_pose_pulls_a_pose_three_percent_too_far_onto_the_edge_pixels():
     segments = []
     visible = [f for f in faces if (R_true @ corners[f].mean(axis=0)) @ (R_true @ corners[f].mean(axis=0) + t_true) < 0]
     for face, grey in zip(visible, (90, 150, 210)):
-        cv2.fillConvexPoly(image, np.rint(pose.project_pixels(corners[face], R_true, t_true, camera)).astype(np.int32), grey)
+        cv2.fillConvexPoly(image, np.rint(camera.project_model(corners[face], R_true, t_true)).astype(np.int32), grey)
         segments += [(corners[a], corners[b]) for a, b in zip(face, face[1:] + face[:1])]
     edges = detect_edges(image, EdgeParams())
-    evidence = pose.EdgeEvidence(edges.edge_map, edges.gray)
+    evidence = scoring.EdgeEvidence(edges.edge_map, edges.gray)
     R0, t0 = cv2.Rodrigues(np.radians([1.0, 0.0, 0.0]))[0] @ R_true, 1.03 * t_true
-    R, t = pose.polish_pose(R0, t0, np.array(segments), np.ones(len(segments)), evidence, camera, radius_px=2.0,
-                            rounds=6, spacing_px=3.0, f_scale=1.0 / 600.0, iterations=3)
+    R, t = refinement.polish_pose(R0, t0, np.array(segments), weights=np.ones(len(segments)), evidence=evidence,
+                                  camera=camera, radius_px=2.0, rounds=6, spacing_px=3.0, f_scale=1.0 / 600.0,
+                                  iterations=3)
     assert np.linalg.norm(t0 - t_true) > 0.008
     # from 9 mm to under 2 mm (measured 1.4): the polygons' corners are rounded to whole pixels
     assert np.linalg.norm(t - t_true) < 0.002

@@ -9,10 +9,9 @@ distance sum and its nearest-pair ratio.
 Where this goes beyond the paper, and why:
 
 * In-plane rotation. The tetrad's two angles turn with the image, so the pair-wise
-  matching is not rotation invariant, as the paper assumes. We search the rotation
-  explicitly: the circular cross-correlation of the length-weighted orientation
-  histograms of view and image (one FFT for all views) gives a few candidate rotations
-  (each also turned by 180 degrees), and the assignment is solved at each candidate.
+  matching is not rotation invariant, as the paper assumes: each job is a (view,
+  rotation) pair that the pre-filter (``prefilter``) chose, and the assignment is solved
+  with the view turned by that rotation.
 * Distance. The tetrad (l, alpha, theta, r) is compared continuously: the midpoint as a
   point (|m| and alpha together), the perpendicular as its foot point (r and theta
   together), the orientation modulo 180 degrees, and the length. Raw angle differences
@@ -20,15 +19,6 @@ Where this goes beyond the paper, and why:
 * Empty elements. Leaving a segment unmatched costs the empty distance e; a pair costs
   its distance. Clipping the matrix at 2e and dropping pairs at the clip is exactly the
   assignment with empty elements inserted on both sides, at the size of the real matrix.
-* Pre-filter. Kuhn-Munkres is cubic, so it does not run for every view: points sampled
-  along every view's segments, turned by each view's candidate rotations, look up an
-  oriented distance map of the image region (all views at once, ``ChamferPrefilter``);
-  the closest (view, rotation) pairs go on to the assignment. The map is drawn from the
-  region's Canny edge pixels, not from its line segments: holes, fillets and rounded
-  outlines give no segment but do give edge pixels, and the view's chords of those curves
-  then find their counterpart. Measured on bench scenes (24 + 12 images per part, seeds
-  100 and 200): clean successes 111 -> 119 of 144 (the SO-ARM100 base attachment, full of
-  holes, 21 -> 28 of 36), clutter 50 -> 59 and 30 % occlusion 1 -> 4 of 96.
 * The matched pairs also give a similarity transform (Procrustes on the nearest pairs),
   which corrects the image normalisation that clutter and occlusion bias.
 * Ranking. After that alignment, views are ranked by how much of the view's and of the
@@ -48,15 +38,12 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..metric_space import segment_lengths
 from ..params import MatchParams
-from .pose import line_equations, nearest_lines
-
-ORIENTATION_BINS = 72  # 2.5 degree bins over [0, pi)
+from .lines2d import line_equations, nearest_lines, point_segment_distance
 
 
 @dataclass
@@ -68,7 +55,6 @@ class SegmentFeatures:
     midpoints: np.ndarray  # (N, 2)
     orientations: np.ndarray  # (N,) direction angle modulo pi
     feet: np.ndarray  # (N, 2) foot of the perpendicular from the origin to the line
-    orientation_histogram: np.ndarray  # (ORIENTATION_BINS,) length-weighted, smoothed
 
 
 def longest(segments: np.ndarray, count: int) -> np.ndarray:
@@ -80,8 +66,7 @@ def longest(segments: np.ndarray, count: int) -> np.ndarray:
 def describe(segments: np.ndarray) -> SegmentFeatures:
     """Features of a normalised segment set (N, 2, 2)."""
     segments = np.asarray(segments, dtype=float)
-    lengths, mid, orient, feet = _geometry(segments)
-    return SegmentFeatures(segments, lengths, mid, orient, feet, _orientation_histogram(orient, lengths))
+    return SegmentFeatures(segments, *_geometry(segments))
 
 
 def _geometry(segments: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -135,41 +120,6 @@ class SegmentBatch:
 def take(batch, jobs):
     """A batch dataclass (``SegmentBatch``, ``Assignment``, ``Similarity``) reduced to some jobs."""
     return dataclasses.replace(batch, **{f.name: getattr(batch, f.name)[jobs] for f in dataclasses.fields(batch)})
-
-
-def _orientation_histogram(orient: np.ndarray, lengths: np.ndarray) -> np.ndarray:
-    bins = (orient / np.pi * ORIENTATION_BINS).astype(int) % ORIENTATION_BINS
-    hist = np.bincount(bins, weights=lengths, minlength=ORIENTATION_BINS)
-    kernel = np.array([0.25, 0.5, 1.0, 0.5, 0.25])  # tolerate a few degrees of noise
-    padded = np.concatenate([hist[-2:], hist, hist[:2]])
-    return np.convolve(padded, kernel, mode="valid")
-
-
-def orientation_spectra(view_hist: np.ndarray) -> np.ndarray:
-    """Conjugate spectra of view orientation histograms (V, B) for ``rotation_candidates``:
-    the views' half of the cross-correlation, computed once when the views are loaded."""
-    return np.conj(np.fft.rfft(view_hist, axis=1))
-
-
-def rotation_candidates(view_spectra: np.ndarray, image_hist: np.ndarray, count: int) -> np.ndarray:
-    """Candidate in-plane rotations (radians, [0, 2 pi)) turning views onto the image.
-
-    view_spectra is ``orientation_spectra`` of the (V, B) view histograms: one circular
-    cross-correlation per view by one inverse FFT. Each of the ``count`` best peaks
-    (modulo pi) gives two candidates, phi and phi + pi. Returns (V, 2*count). Per region at
-    2,500 views this takes 3.5 ms; with the views' FFT done here and the peaks ranked by a
-    full argsort it took 11 ms, for the same candidates.
-    """
-    corr = np.fft.irfft(np.fft.rfft(image_hist)[None, :] * view_spectra, n=ORIENTATION_BINS, axis=1)
-    wrapped = np.concatenate([corr[:, -1:], corr, corr[:, :1]], axis=1)
-    peaks = np.where((corr >= wrapped[:, :-2]) & (corr >= wrapped[:, 2:]), corr, -np.inf)
-    ranked = np.empty((len(corr), count), dtype=int)
-    rows = np.arange(len(corr))
-    for k in range(count):  # best peak first, then the next best: a few argmax, no sort
-        ranked[:, k] = best = np.argmax(peaks, axis=1)
-        peaks[rows, best] = -np.inf
-    phi = ranked * (np.pi / ORIENTATION_BINS)
-    return np.concatenate([phi, phi + np.pi], axis=1)
 
 
 def distance_matrix(model: SegmentBatch, image: SegmentFeatures, phi: np.ndarray, p: MatchParams) -> np.ndarray:
@@ -321,19 +271,6 @@ def weighted_similarity(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -
     return Similarity(scale, angle, shift, spread & (scale > 0))
 
 
-def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """Distances of points (..., 2) to segments (..., 2, 2), broadcast against each other
-    (x and y kept apart: numpy's overhead on a trailing axis of 2 cost more than the
-    arithmetic)."""
-    ax, ay = segments[..., 0, 0], segments[..., 0, 1]
-    dx, dy = segments[..., 1, 0] - ax, segments[..., 1, 1] - ay
-    dd = np.maximum(dx * dx + dy * dy, 1e-18)
-    px, py = points[..., 0], points[..., 1]
-    u = np.clip(((px - ax) * dx + (py - ay) * dy) / dd, 0.0, 1.0)
-    ex, ey = px - (ax + u * dx), py - (ay + u * dy)
-    return np.sqrt(ex * ex + ey * ey)
-
-
 def coverage(model: np.ndarray, valid: np.ndarray, image: np.ndarray, tolerance: float,
              max_angle_deg: float = 12.0, per_segment: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Two-way edge coverage of each model set (J, M, 2, 2; ``valid`` marks real segments)
@@ -375,111 +312,6 @@ def _near_points(source: np.ndarray, target: np.ndarray, frac: np.ndarray, toler
     of target[p]."""
     start, direction = source[:, 0], source[:, 1] - source[:, 0]
     return point_segment_distance(start + frac[:, None, None] * direction, target) < tolerance
-
-
-class ChamferPrefilter:
-    """Oriented chamfer distance of every view, at its candidate rotations, to a region.
-
-    Views are sampled once as ``points_per_view`` points along their normalised segments
-    (length-weighted). A region's oriented edge points (normalised, e.g. its edge pixels)
-    are rasterised once into ``ORIENT_BINS`` distance maps, one per edge direction, over
-    the normalised square [-EXTENT, EXTENT]^2. Scoring every (view, rotation) is then a
-    gather over a (V, R, P) index array: a few milliseconds for thousands of views.
-    """
-
-    ORIENT_BINS = 6
-    GRID = 96
-    EXTENT = 2.0
-    TRUNCATE = 0.25
-    BLOCK = 256
-    COARSE_STRIDE = 4
-    COARSE_KEEP = 16
-
-    def __init__(self, view_features: list[SegmentFeatures], points_per_view: int = 32):
-        pts, ori = [], []
-        for f in view_features:
-            p, o = spread_points(f.segments, points_per_view)
-            pts.append(p)
-            ori.append(o)
-        self.points = np.stack(pts).astype(np.float32)  # (V, P, 2)
-        self.orientations = np.stack(ori).astype(np.float32)  # (V, P) modulo pi
-
-    def distance_maps(self, points: np.ndarray, orientations: np.ndarray) -> np.ndarray:
-        """(ORIENT_BINS, GRID, GRID) truncated distance to the region's points (N, 2) of each
-        direction bin (orientations modulo pi); a point falls in the cell the gather of
-        ``scores`` reads, and points outside the square are left out."""
-        cell = 2.0 * self.EXTENT / self.GRID
-        col, row = np.floor((np.asarray(points, dtype=float) + self.EXTENT) / cell).astype(np.int64).T
-        inside = (col >= 0) & (col < self.GRID) & (row >= 0) & (row < self.GRID)
-        bins = (np.asarray(orientations)[inside] / np.pi * self.ORIENT_BINS).astype(int) % self.ORIENT_BINS
-        canvas = np.full((self.ORIENT_BINS, self.GRID, self.GRID), 255, np.uint8)
-        canvas[bins, row[inside], col[inside]] = 0
-        maps = np.stack([cv2.distanceTransform(c, cv2.DIST_L2, 3) for c in canvas]) * np.float32(cell)
-        return np.minimum(maps, np.float32(self.TRUNCATE))
-
-    def shortlist(self, maps: np.ndarray, phis: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-        """Views and rotation indices (in no particular order) of the ``count`` (view,
-        rotation) pairs with the lowest score.
-
-        Two stages: every pair is scored on every ``COARSE_STRIDE``-th of its points (still
-        spread along the whole view), and only the ``COARSE_KEEP`` x ``count`` best go on to
-        the full score. At 10,000 views this is what keeps the pre-filter affordable.
-        """
-        coarse = self.scores(maps, phis, slice(None, None, self.COARSE_STRIDE)).ravel()
-        keep = min(len(coarse), self.COARSE_KEEP * count)
-        pairs = np.argpartition(coarse, keep - 1)[:keep] if keep < len(coarse) else np.arange(len(coarse))
-        views, which = np.unravel_index(pairs, phis.shape)
-        fine = self._block_scores(maps, self.points[views], self.orientations[views],
-                                  np.mod(phis[views, which].astype(np.float32), np.float32(2 * np.pi))[:, None])[:, 0]
-        count = min(count, len(fine))
-        best = np.argpartition(fine, count - 1)[:count]
-        return views[best], which[best]
-
-    def scores(self, maps: np.ndarray, phis: np.ndarray, points: slice = slice(None)) -> np.ndarray:
-        """(V, R) mean truncated oriented distance of view v turned by phis[v, r], over the
-        view's ``points`` (all by default).
-
-        Every step is over V x R x P points (10^5 to 10^6), so it runs in blocks of
-        ``BLOCK`` views, whose temporaries stay in the cache, and the slow steps are
-        avoided: one flat gather instead of a 3-index one, and no np.mod for the
-        orientation (with phi in [0, 2 pi) the turned orientation is below 3 pi, and
-        subtracting pi once or twice gives np.mod's result to the bit).
-        """
-        phis = np.mod(phis.astype(np.float32), np.float32(2 * np.pi))
-        out = np.empty(phis.shape, np.float32)
-        for lo in range(0, len(phis), self.BLOCK):
-            views = slice(lo, lo + self.BLOCK)
-            out[views] = self._block_scores(maps, self.points[views, points], self.orientations[views, points],
-                                            phis[views])
-        return out
-
-    def _block_scores(self, maps, points, orientations, phis):
-        c, s = np.cos(phis)[..., None], np.sin(phis)[..., None]
-        x, y = points[:, None, :, 0], points[:, None, :, 1]
-        xr, yr = c * x - s * y, s * x + c * y  # (V, R, P)
-        cell = 2.0 * self.EXTENT / self.GRID
-        col = np.clip(((xr + self.EXTENT) / cell).astype(np.int32), 0, self.GRID - 1)
-        row = np.clip(((yr + self.EXTENT) / cell).astype(np.int32), 0, self.GRID - 1)
-        ori = orientations[:, None, :] + phis[..., None]
-        half_turns = (ori >= np.float32(np.pi)).astype(np.float32) + (ori >= np.float32(2 * np.pi))
-        ori -= np.float32(np.pi) * half_turns
-        b = (ori / np.pi * self.ORIENT_BINS).astype(np.int32) % self.ORIENT_BINS
-        outside = (np.abs(xr) > self.EXTENT) | (np.abs(yr) > self.EXTENT)
-        dist = np.where(outside, self.TRUNCATE, maps.ravel()[(b * self.GRID + row) * self.GRID + col])
-        return dist.mean(axis=2)
-
-
-def spread_points(segments: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """``count`` points evenly spaced along the total length of a segment set, and the
-    orientation (modulo pi) of the segment each lies on."""
-    lengths = segment_lengths(segments)
-    cum = np.concatenate([[0.0], np.cumsum(lengths)])
-    at = (np.arange(count) + 0.5) / count * cum[-1]
-    idx = np.clip(np.searchsorted(cum, at, side="right") - 1, 0, len(segments) - 1)
-    frac = (at - cum[idx]) / np.maximum(lengths[idx], 1e-12)
-    a, b = segments[idx, 0], segments[idx, 1]
-    d = b - a
-    return a + frac[:, None] * d, np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
 
 
 def align_to_lines(model: np.ndarray, valid: np.ndarray, image: np.ndarray,
@@ -548,3 +380,45 @@ def _least_squares(rows: np.ndarray, rhs: np.ndarray, used: np.ndarray) -> np.nd
     for j in np.nonzero(~well)[0]:
         solution[j] = np.linalg.lstsq(rows[j, used[j]], rhs[j, used[j]], rcond=None)[0]
     return solution
+
+
+@dataclass
+class Alignment:
+    """What ``align`` found for the jobs of a batch whose pairs gave a similarity."""
+
+    jobs: np.ndarray  # (K,) indices into the batch
+    scale: np.ndarray  # (K,) the similarity normalised model -> normalised image, after 2D ICP
+    angle: np.ndarray  # (K,)
+    shift: np.ndarray  # (K, 2)
+    coverage: np.ndarray  # (K,) F-measure of the two-way edge coverage after alignment
+
+
+def align(model: SegmentBatch, image: SegmentFeatures, phi: np.ndarray, p: MatchParams) -> Alignment:
+    """The correspondence step for a batch of jobs (model sets turned by ``phi``) against
+    one image region: Kuhn-Munkres at each rotation, the similarity its nearest pairs
+    imply, a second assignment with that similarity applied (kept where it costs less),
+    then the similarity polished by 2D ICP against the region's lines and the aligned
+    sets ranked by ``coverage``. Jobs whose pairs give no similarity drop out."""
+    best = assign(model, image, phi, p)
+    similarity = similarity_from_pairs(model, image, best, phi)
+    jobs = np.nonzero(similarity.found)[0]
+    if len(jobs) == 0:
+        return Alignment(jobs, np.zeros(0), np.zeros(0), np.zeros((0, 2)), np.zeros(0))
+    model, best, similarity = take(model, jobs), take(best, jobs), take(similarity, jobs)
+    # re-match with the similarity applied: the pairs now say what is really aligned
+    moved = apply_similarity(model.segments, similarity.scale, similarity.angle, similarity.shift)
+    refined = assign(SegmentBatch.of(moved, model.valid), image, np.zeros(len(jobs)), p)
+    better = similarity_from_pairs(model, image, refined, similarity.angle)
+    switch = (refined.cost < best.cost) & better.found
+    for name in ("scale", "angle", "shift"):
+        getattr(similarity, name)[switch] = getattr(better, name)[switch]
+    a, angle, b = similarity.scale, similarity.angle, similarity.shift
+    moved = apply_similarity(model.segments, a, angle, b)
+    tolerance = p.coverage_tolerance
+    moved, polish = align_to_lines(moved, model.valid, image.segments, (3 * tolerance, tolerance))
+    A = polish[:, :, :2] @ (a[:, None, None] * rotations(angle))
+    b = np.einsum("jkl,jl->jk", polish[:, :, :2], b) + polish[:, :, 2]
+    a, angle = np.sqrt(np.abs(np.linalg.det(A))), np.arctan2(A[:, 1, 0], A[:, 0, 0])
+    covered_model, covered_image = coverage(moved, model.valid, image.segments, tolerance)
+    f_measure = 2 * covered_model * covered_image / np.maximum(covered_model + covered_image, 1e-12)
+    return Alignment(jobs, a, angle, b, f_measure)

@@ -1,0 +1,138 @@
+"""The tetrad hypothesis generator: which views of the aspect graph, turned, scaled and
+shifted how, explain each candidate region (seed paper section 6, ``matching``).
+
+For every region the pre-filter shortlists (view, rotation) jobs (``prefilter``); the
+jobs of a region run as one batch through the correspondence step (``matching.align``);
+each aligned job becomes a ``Hypothesis``: the similarity from the view's orthographic
+coordinates (metres) to the region's virtual image (normalised coordinates), which
+``refinement.pose_from_similarity`` turns into a first metric pose.
+
+``matching.workers`` threads split each region's batch between them. Measured
+(bench/latency.py, 1,505 views, the other core busy), 2 threads are still no faster than
+1 (matching 38-46 against 33-40 ms per image): the batched steps are short and most of
+them hold the GIL; so the default is 1.
+"""
+from __future__ import annotations
+
+import itertools
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..aspect_graph import AspectGraph
+from ..metric_space import outline_normalisation
+from ..params import MatchParams
+from . import matching
+from .prefilter import ChamferPrefilter, orientation_histogram, orientation_spectra, rotation_candidates
+from .regions import Region
+
+
+@dataclass
+class Hypothesis:
+    """A view matched to a region: the similarity view (metres) -> virtual image (normalised)."""
+
+    region: Region
+    view: int
+    scale: float
+    phi: float
+    shift: np.ndarray
+    coverage: float  # F-measure of the two-way edge coverage after alignment
+
+
+class ViewLibrary:
+    """Per-view features for matching, computed once from the aspect graph."""
+
+    def __init__(self, graph: AspectGraph, max_segments: int):
+        self.normalisation = []
+        self.features: list[matching.SegmentFeatures] = []
+        for v in range(graph.n_views):
+            lo, hi = graph.seg_offsets[v], graph.seg_offsets[v + 1]
+            metric = graph.seg_2d[lo:hi] * graph.norm_scales[v] + graph.norm_centers[v]
+            metric = metric[matching.longest(metric, max_segments)]
+            norm = outline_normalisation(metric)
+            self.normalisation.append(norm)
+            self.features.append(matching.describe(norm.apply(metric)))
+        histograms = np.stack([orientation_histogram(f.orientations, f.lengths) for f in self.features])
+        self.orientation_spectra = orientation_spectra(histograms)
+        #: matching pads every view's segment set to this size: the largest view's, not
+        #: ``max_segments``; the sharp bracket's views have at most 36 segments, and padding
+        #: them to 36 instead of 60 takes its matching from 39 to 31 ms per image
+        self.pad_size = max(len(f.segments) for f in self.features)
+        self.prefilter = ChamferPrefilter([f.segments for f in self.features])
+
+    def shortlist(self, region: Region, p: MatchParams) -> list[tuple[int, float]]:
+        """The (view, rotation) pairs closest to the region by oriented chamfer distance."""
+        phis = rotation_candidates(self.orientation_spectra, region.orientation_histogram, p.rotation_candidates)
+        views, which = self.prefilter.shortlist(region.distance_maps, phis, p.shortlist_size)
+        return [(int(v), float(phis[v, r])) for v, r in zip(views, which)]
+
+
+#: one matching job: a region, a view and the in-plane rotation to try it at
+Job = tuple[Region, int, float]
+
+
+class TetradHypotheses:
+    """Hypotheses for regions by the pre-filter and the bipartite matching of tetrads."""
+
+    def __init__(self, graph: AspectGraph, p: MatchParams):
+        self.graph = graph
+        self._params = p
+        self._views = ViewLibrary(graph, p.max_model_segments)
+        self._pool = ThreadPoolExecutor(max_workers=max(1, p.workers))
+
+    def update(self, p: MatchParams) -> None:
+        """New parameters; the view features and the thread pool are rebuilt if they change."""
+        old, self._params = self._params, p
+        if p.max_model_segments != old.max_model_segments:
+            self._views = ViewLibrary(self.graph, p.max_model_segments)
+        if p.workers != old.workers:
+            self._pool.shutdown(wait=False)
+            self._pool = ThreadPoolExecutor(max_workers=max(1, p.workers))
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
+
+    def shortlist(self, regions: list[Region]) -> list[Job]:
+        """The pre-filter's (view, rotation) jobs of every region, region by region."""
+        return [(region, view, phi) for region in regions for view, phi in self._views.shortlist(region, self._params)]
+
+    def match(self, jobs: list[Job]) -> list[Hypothesis]:
+        """Hypotheses of the jobs, in job order. Consecutive jobs of one region run together
+        (``_match_batch``), split into one batch per thread."""
+        workers = max(1, self._params.workers)
+        batches = []
+        for _, run in itertools.groupby(jobs, key=lambda job: id(job[0])):
+            run = list(run)
+            size = -(-len(run) // workers)
+            batches += [run[i:i + size] for i in range(0, len(run), size)]
+        return [h for batch in self._pool.map(self._match_batch, batches) for h in batch]
+
+    def _match_batch(self, jobs: list[Job]) -> list[Hypothesis]:
+        """``matching.align`` for jobs of one region at once (``matching.SegmentBatch``),
+        each aligned job composed into the similarity view metres -> virtual image."""
+        region = jobs[0][0]
+        views = np.array([view for _, view, _ in jobs])
+        phi = np.array([phi for _, _, phi in jobs])
+        model = matching.SegmentBatch.pad([self._views.features[v].segments for v in views], self._views.pad_size)
+        aligned = matching.align(model, region.features, phi, self._params)
+        if len(aligned.jobs) == 0:
+            return []
+        views = views[aligned.jobs]
+        # compose: view metres -> view normalised -> region normalised -> virtual image
+        norm_v = [self._views.normalisation[v] for v in views]
+        scale = region.scale * aligned.scale / np.array([n.scale for n in norm_v])
+        turned = np.einsum("jkl,jl->jk", matching.rotations(aligned.angle), np.array([n.center for n in norm_v]))
+        shift = region.center + region.scale * aligned.shift - scale[:, None] * turned
+        return [Hypothesis(region, int(views[j]), float(scale[j]), float(aligned.angle[j]), shift[j],
+                           float(aligned.coverage[j])) for j in range(len(views))]
+
+
+def best_per_region(hypotheses: list[Hypothesis], count: int) -> list[Hypothesis]:
+    """The ``count`` best-covered hypotheses of every region: a small region (the part
+    among clutter) must not lose its candidates to the whole image's."""
+    chosen = []
+    for region_id in {id(h.region) for h in hypotheses}:
+        own = [h for h in hypotheses if id(h.region) == region_id]
+        chosen += sorted(own, key=lambda h: -h.coverage)[:count]
+    return chosen

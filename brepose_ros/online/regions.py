@@ -1,0 +1,122 @@
+"""Candidate regions of an image, each seen by its virtual camera and normalised as the
+views of the aspect graph are (``metric_space.outline_normalisation``).
+
+The whole image is one region; clusters of touching segments are the others, the
+candidate positions of an off-centre part among clutter. A region is turned onto the
+virtual camera centred on it (``camera.virtual_alignment``), where the part looks like an
+orthographic view scaled by 1 / depth, and normalised there.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..camera import to_virtual, virtual_alignment
+from ..metric_space import outline_normalisation, segment_lengths
+from ..params import MatchParams
+from . import matching
+from .frame import Frame
+from .lines2d import convex_hull
+from .prefilter import ChamferPrefilter, orientation_histogram
+
+#: fewer segments than this cannot pin down a view, in a region or in a whole image
+MIN_REGION_SEGMENTS = 4
+
+#: a region's edge pixels are those inside the convex hull of its segments grown by this
+#: factor: rounded outlines and corners, which give no segment, bulge out of that hull
+REGION_GROWTH = 1.15
+
+#: segments whose end points lie closer than this share of the image diagonal are one cluster
+CLUSTER_GAP_FRACTION = 0.03
+
+
+@dataclass
+class Region:
+    """Image segments of one candidate region, seen by the virtual camera centred on it."""
+
+    indices: np.ndarray  # into the image's segments
+    R_align: np.ndarray
+    center: np.ndarray  # normalisation in virtual normalised coordinates
+    scale: float
+    features: matching.SegmentFeatures
+    orientation_histogram: np.ndarray  # of the normalised segments (``prefilter``)
+    distance_maps: np.ndarray  # oriented distance maps of its edge pixels for the chamfer pre-filter
+
+
+def region_groups(frame: Frame, max_regions: int) -> list[np.ndarray]:
+    """Segment indices of the candidate regions: the whole image, then clusters of
+    touching segments (off-centre part among clutter)."""
+    groups = [np.arange(len(frame.segments_px))]
+    groups += cluster_segments(frame.segments_px,
+                               gap=CLUSTER_GAP_FRACTION * np.hypot(frame.camera.width, frame.camera.height))
+    return [g for g in groups[:max_regions] if len(g) >= MIN_REGION_SEGMENTS]
+
+
+def normalised_region(indices: np.ndarray, frame: Frame, p: MatchParams) -> Region | None:
+    """The region's longest segments on the virtual camera centred on them, normalised; and
+    the pre-filter's distance maps of the edge pixels around them, normalised alike. None
+    when the segments cannot be normalised (all on one line or point)."""
+    indices = indices[matching.longest(frame.segments_n[indices], p.max_image_segments)]
+    try:
+        center = outline_normalisation(frame.segments_n[indices]).center
+        R_align = virtual_alignment(center)
+        virtual = to_virtual(frame.segments_n[indices], R_align)
+        norm = outline_normalisation(virtual)
+    except ValueError:
+        return None
+    features = matching.describe(norm.apply(virtual))
+    around = edge_pixels_around(frame, frame.segments_px[indices])
+    pixels = norm.apply(to_virtual(frame.edge_points_n[around], R_align))
+    return Region(indices=indices, R_align=R_align, center=norm.center, scale=norm.scale, features=features,
+                  orientation_histogram=orientation_histogram(features.orientations, features.lengths),
+                  distance_maps=ChamferPrefilter.distance_maps(pixels, frame.evidence.directions[around]))
+
+
+def edge_pixels_around(frame: Frame, segments_px: np.ndarray) -> np.ndarray:
+    """Mask of the frame's edge pixels inside the segments' convex hull grown by
+    ``REGION_GROWTH`` about its centre."""
+    hull = convex_hull(segments_px)
+    center = hull.mean(axis=0)
+    hull = center + REGION_GROWTH * (hull - center)
+    x0, y0 = np.floor(hull.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(hull.max(axis=0)).astype(int) + 1
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.fillConvexPoly(mask, np.round(hull - [x0, y0]).astype(np.int32), 1)
+    pixels = frame.evidence.pixels
+    x, y = pixels[:, 0] - x0, pixels[:, 1] - y0
+    inside = (x >= 0) & (x < x1 - x0) & (y >= 0) & (y < y1 - y0)
+    inside[inside] = mask[y[inside], x[inside]] > 0
+    return inside
+
+
+def cluster_segments(segments_px: np.ndarray, gap: float) -> list[np.ndarray]:
+    """Groups of segments chained by end points closer than ``gap``, largest first.
+
+    Only groups with at least a tenth of the largest group's total length are returned:
+    these are the candidate positions of an off-centre part among clutter.
+    """
+    n = len(segments_px)
+    ends = segments_px.reshape(-1, 2)
+    close = np.linalg.norm(ends[:, None] - ends[None, :], axis=2) < gap
+    linked = close.reshape(n, 2, n, 2).any(axis=(1, 3))
+    parent = np.arange(n)
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in zip(*np.nonzero(np.triu(linked, 1))):
+        ri, rj = root(i), root(j)
+        if ri != rj:
+            parent[ri] = rj
+    labels = np.array([root(i) for i in range(n)])
+    lengths = segment_lengths(segments_px)
+    groups = [np.nonzero(labels == lab)[0] for lab in np.unique(labels)]
+    totals = np.array([lengths[g].sum() for g in groups])
+    order = np.argsort(-totals)
+    keep = [groups[i] for i in order if totals[i] >= 0.1 * totals[order[0]]]
+    return keep if len(keep) > 1 else []  # one cluster is the whole image again

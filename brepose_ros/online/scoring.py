@@ -1,0 +1,271 @@
+"""Verification: how well a pose's projected model edges and the image's edge pixels
+explain each other (the score), and the seed paper's error ratio at the final pose.
+
+The score is what every stage after matching compares: hypotheses of all regions, the
+steps of the view climb, the polish, and the found / not-found decision.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from ..aspect_graph import AspectGraph
+from ..camera import project_normalised
+from ..params import EstimatorParams, PoseParams
+from .lines2d import convex_hull, nearest_lines, samples_along
+
+if TYPE_CHECKING:
+    from .frame import Frame
+
+#: how far (in units of pose.inlier_pixels) a model edge may lie from an image line and
+#: still count as matched for the error ratio; within 1 unit it is in the nearest group
+ERROR_RATIO_REACH = 4.0
+
+#: a pose scoring this high is not searched further: it is not climbed, nor is any other
+#: start once a climb reaches it. On the clean bench images no other start has beaten such a
+#: pose (same 73 of 96 successes with and without the second climb). Climbing a start that
+#: already scored this high changed no success on bench/accuracy.py's 288 clean, clutter
+#: and occl30 images. It moved 11 poses, chasing the score's pixel noise (before the polish
+#: on edge pixels by up to 0.7 degrees, 7 of them away from the truth; with the polish, not
+#: climbing changes their rotation errors by at most 0.35 degrees, 5 down and 6 up), and
+#: cost 12-40 ms each: without it the refinement takes 37 instead of 52 ms CPU per image
+#: (median, 2,500-view latency images). Nor are the clusters matched once the whole image
+#: holds such a pose: no final pose changed on the 480 images of bench/accuracy.py (all five
+#: conditions), and on the latency images whose part falls apart into two clusters a third
+#: of the work is saved (69 instead of 114 ms CPU per image, median of all 12)
+CLEAR_SCORE = 0.95
+
+
+def pose_scores(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame", p: PoseParams) -> np.ndarray:
+    """For B poses (B, 3, 3), (B, 3): F-measure of two shares on the image's edge pixels
+    (``EdgeEvidence``; the first share of all poses in one call).
+
+    Of the projected visible model edges, the share an image edge confirms; of the
+    image edges inside the projected part's outline, the share a model edge explains.
+    Either alone is fooled: a pose far away projects small onto dense edges, a pose too
+    close covers every edge in the image; and a pose projecting smaller than
+    ``pose.min_size_pixels`` scores 0. Neither share depends on the region a
+    hypothesis came from, so hypotheses of all regions compare.
+    """
+    scored, drawn = [], []
+    for b, view in enumerate(graph.nearest_views(R, t)):
+        if t[b][2] <= 0:
+            continue
+        model_px = frame.camera.project_model(graph.seg_3d[graph.view_slice(view)], R[b], t[b])
+        extent = np.ptp(model_px.reshape(-1, 2), axis=0) if len(model_px) else np.zeros(2)
+        if np.hypot(*extent) < p.min_size_pixels:
+            continue  # a part this small is not recognisable, and a tiny pose fits any edges
+        scored.append(b)
+        drawn.append(model_px)
+    scores = np.zeros(len(R))
+    if not scored:
+        return scores
+    tolerance = p.inlier_pixels
+    spans = np.cumsum([0] + [len(m) for m in drawn])
+    confirmed = frame.evidence.supports(np.concatenate(drawn), spans, tolerance)
+    for b, c, model_px in zip(scored, confirmed, drawn):
+        explained = frame.evidence.explained(model_px, tolerance)
+        scores[b] = 2 * c * explained / max(c + explained, 1e-12)
+    return scores
+
+
+@dataclass
+class EdgePairs:
+    """The seed paper's pairs at a pose: the visible model edges of the nearest view matched
+    to image lines within ``ERROR_RATIO_REACH`` inlier distances; the nearest group lies
+    within ``pose.inlier_pixels``."""
+
+    error_ratio: float  # share of the visible model edges outside the nearest group (CONVENTIONS.md)
+    n_matched: int
+    n_nearest: int
+    image_segments: np.ndarray  # (n_nearest, 2, 2) pixels
+    model_segments: np.ndarray  # (n_nearest, 2, 2) pixels, projected with the pose
+
+
+def edge_pairs(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame", p: EstimatorParams) -> EdgePairs:
+    """``EdgePairs`` of one pose. Model edges that project shorter than the line detector's
+    minimum length cannot be found in any image and are left out."""
+    camera = frame.camera
+    visible = graph.seg_3d[graph.visible_segments(R, t)]
+    lengths = np.linalg.norm(np.diff(camera.project_model(visible, R, t), axis=1), axis=2)[:, 0]
+    visible = visible[lengths >= p.edges.min_length_fraction * np.hypot(camera.width, camera.height)]
+    tolerance = p.pose.inlier_pixels / camera.focal
+    model_index, image_index, distances = nearest_lines(project_normalised(visible, R, t), frame.segments_n,
+                                                        ERROR_RATIO_REACH * tolerance)
+    nearest = distances <= tolerance
+    return EdgePairs(error_ratio=1.0 - float(nearest.sum()) / max(len(visible), 1),
+                     n_matched=len(model_index), n_nearest=int(nearest.sum()),
+                     image_segments=frame.segments_px[image_index[nearest]],
+                     model_segments=camera.project_model(visible[model_index][nearest], R, t))
+
+
+class EdgeEvidence:
+    """What the image says about edges, prepared once per image for scoring poses.
+
+    Built from the Canny edge pixels, not from the Hough segments: a faint or curved edge
+    that the line detector dropped still has its pixels, and a score counted on pixels
+    separates right from wrong poses far better (on cluttered renders the true pose scored
+    above every wrongly chosen one, where the segment-based score did not).
+
+    * ``support`` (model -> image): share of the projected model edge length within
+      ``tolerance`` of an edge pixel of like direction (oriented chamfer: each model point
+      looks up the distance to the nearest edge pixel in its direction bin or the two next
+      to it).
+    * ``explained`` (image -> model): share of the edge pixels inside the projected part's
+      convex outline, grown by ``OUTLINE_MARGIN``, lying within ``tolerance`` of a
+      projected model edge. The margin, at least ``MIN_MARGIN_PX``, is what stops a small
+      pose that fits one inner feature (a window of the part) from explaining everything
+      it covers: a relative margin alone grows with the pose, and poses 5x too far away
+      that sat on one hole of the part outscored the true pose on clean images (measured
+      on bench/accuracy.py scenes: with the floor, 78 instead of 74 of 96 clean images
+      succeed, together with 6 hypotheses per region).
+
+    Both run hundreds of times per image and only ask whether a distance is within
+    ``tolerance``, so neither computes distances: with OpenCV's 3x3 chamfer distance
+    (``cv2.distanceTransform(..., DIST_L2, 3)``, an exact shortest path in integer steps)
+    "within r of a set" is the set dilated by the chamfer ball of radius r
+    (``chamfer_ball``), several times cheaper than the transform. ``support`` dilates,
+    once per tolerance, the edge pixels of each direction bin together with the two next
+    to it, so that a model point needs one look-up.
+    """
+
+    BINS = 8
+    OUTLINE_MARGIN = 0.2
+    MIN_MARGIN_PX = 40.0
+
+    def __init__(self, edge_map: np.ndarray, gray: np.ndarray):
+        self.shape = edge_map.shape
+        self.edges = edge_map > 0
+        rows, cols = np.nonzero(self.edges)
+        smooth = cv2.GaussianBlur(np.asarray(gray, np.float32), (5, 5), 0)
+        dx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0)[rows, cols]
+        dy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1)[rows, cols]
+        #: the edge pixels (x, y) and the direction each edge runs in, modulo pi (across the
+        #: gradient): the pre-filter's picture of an image region
+        self.pixels = np.stack([cols, rows], axis=1)
+        self.directions = np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi)
+        bins = (self.directions / np.pi * self.BINS).astype(int) % self.BINS
+        self._edge_bins = np.zeros(self.shape, np.uint8)
+        self._edge_bins[rows, cols] = bins
+        #: per direction bin b, the edge pixels of bins b - 1, b and b + 1
+        self.like_edges = np.zeros((self.BINS,) + self.shape, np.uint8)
+        for step in (-1, 0, 1):
+            self.like_edges[(bins + step) % self.BINS, rows, cols] = 1
+        self._near_like = {}  # tolerance -> like_edges dilated by its chamfer ball
+
+    def orientation_bin(self, segments: np.ndarray) -> np.ndarray:
+        return self._bins_of(segments[:, 1] - segments[:, 0])
+
+    def _bins_of(self, d: np.ndarray) -> np.ndarray:
+        return (np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi) / np.pi * self.BINS).astype(int) % self.BINS
+
+    def support(self, model_px: np.ndarray, tolerance_px: float) -> float:
+        return float(self.supports(model_px, np.array([0, len(model_px)]), tolerance_px)[0])
+
+    def supports(self, model_px: np.ndarray, spans: np.ndarray, tolerance_px: float) -> np.ndarray:
+        """``support`` of several poses at once, segments ``spans[b]:spans[b + 1]`` of
+        ``model_px`` belonging to pose b: the look-ups of all poses run together, each
+        pose's sums separately (the same sums as alone)."""
+        if tolerance_px not in self._near_like:
+            # one pixel of False around the image: points outside it are clipped onto that
+            # border instead of being masked out (a mask costs several array operations)
+            # (filled in place: np.stack, > 0 and np.pad of the 8 maps took 5 of these 6 ms)
+            ball = chamfer_ball(tolerance_px)
+            near = np.zeros((self.BINS, self.shape[0] + 2, self.shape[1] + 2), np.uint8)
+            for b, like in enumerate(self.like_edges):
+                near[b, 1:-1, 1:-1] = cv2.dilate(like, ball)
+            self._near_like[tolerance_px] = near.view(bool)  # 0/1 bytes, dilated from 0/1
+        h, w = self.shape
+        delta = model_px[:, 1] - model_px[:, 0]
+        lengths = np.sqrt((delta * delta).sum(axis=1))
+        counts = np.clip(np.ceil(lengths / 2.0).astype(int), 1, 2000)
+        seg_idx, frac = samples_along(counts)
+        pts = model_px[:, 0][seg_idx] + frac[:, None] * delta[seg_idx]
+        weight = (lengths / counts)[seg_idx]
+        x, y = np.clip(np.rint(pts).astype(int) + 1, 0, [w + 1, h + 1]).T
+        near = self._near_like[tolerance_px][self._bins_of(delta)[seg_idx], y, x]
+        out = np.zeros(len(spans) - 1)
+        point_spans = np.concatenate([[0], np.cumsum(counts)])[spans]
+        for b, (lo, hi) in enumerate(zip(point_spans[:-1], point_spans[1:])):
+            if hi > lo:
+                out[b] = weight[lo:hi][near[lo:hi]].sum() / max(weight[lo:hi].sum(), 1e-12)
+        return out
+
+    def nearest_edges(self, points_px: np.ndarray, bins: np.ndarray, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """For points (N, 2) on model edges of direction ``bins`` (N,): the nearest edge
+        pixel (N, 2), x and y, and whether it lies within ``radius_px`` and runs alike
+        (its direction bin within one of the point's). The distance transform covers only
+        the points' bounding box (about 1.5 ms for a 200 x 200 pixel part, 10 ms for the
+        whole 640 x 480 image)."""
+        h, w = self.shape
+        pad = int(np.ceil(radius_px)) + 1
+        x0, y0 = np.clip(np.floor(points_px.min(axis=0)).astype(int) - pad, 0, [w, h])
+        x1, y1 = np.clip(np.ceil(points_px.max(axis=0)).astype(int) + pad + 1, 0, [w, h])
+        nearest, found = np.zeros_like(points_px, dtype=float), np.zeros(len(points_px), bool)
+        window = self.edges[y0:y1, x0:x1]
+        if not window.any():
+            return nearest, found
+        _, labels = cv2.distanceTransformWithLabels((~window).astype(np.uint8), cv2.DIST_L2, 5,
+                                                    labelType=cv2.DIST_LABEL_PIXEL)
+        rows, cols = np.nonzero(window)
+        pixel_of = np.zeros((labels.max() + 1, 2), np.int64)  # label -> (x, y) of its edge pixel
+        pixel_of[labels[rows, cols]] = np.stack([cols, rows], axis=1)
+        x, y = np.rint(points_px).astype(int).T
+        inside = (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
+        edge = pixel_of[labels[np.clip(y - y0, 0, y1 - y0 - 1), np.clip(x - x0, 0, x1 - x0 - 1)]] + [x0, y0]
+        turn = np.abs(self._edge_bins[edge[:, 1], edge[:, 0]] - bins) % self.BINS
+        found = inside & (np.minimum(turn, self.BINS - turn) <= 1) & \
+            (np.hypot(*(edge - points_px).T) <= radius_px)
+        return edge.astype(float), found
+
+    @classmethod
+    def grown_outline(cls, points: np.ndarray) -> np.ndarray:
+        """Convex hull of the points, grown about its centre by the margin (class doc)."""
+        hull = convex_hull(points)
+        center = hull.mean(axis=0)
+        radius = max(float(np.sqrt(np.mean(np.sum((hull - center) ** 2, axis=1)))), 1.0)
+        return center + (1.0 + max(cls.OUTLINE_MARGIN, cls.MIN_MARGIN_PX / radius)) * (hull - center)
+
+    def explained(self, model_px: np.ndarray, tolerance_px: float) -> float:
+        if len(model_px) == 0:
+            return 0.0
+        h, w = self.shape
+        pts = np.clip(np.asarray(model_px, np.float64).reshape(-1, 2), -4.0 * max(h, w), 5.0 * max(h, w))
+        hull = self.grown_outline(pts)
+        # work in the outline's bounding box only: a part rarely fills the image
+        pad = int(np.ceil(tolerance_px)) + 1
+        x0, y0 = np.maximum(np.floor(hull.min(axis=0)).astype(int) - pad, 0)
+        x1, y1 = np.minimum(np.ceil(hull.max(axis=0)).astype(int) + pad + 1, [w, h])
+        if x1 <= x0 or y1 <= y0:
+            return 0.0
+        offset = np.array([x0, y0])
+        outline = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        cv2.fillConvexPoly(outline, np.round(hull - offset).astype(np.int32), 1)
+        inside = self.edges[y0:y1, x0:x1] & (outline > 0)
+        total = np.count_nonzero(inside)
+        if total == 0:
+            return 0.0
+        drawn = np.zeros(outline.shape, np.uint8)
+        cv2.polylines(drawn, np.rint(pts.reshape(-1, 2, 2) - offset).astype(np.int32), False, 1, 1)
+        near = cv2.dilate(drawn, chamfer_ball(tolerance_px)) > 0
+        return float(np.count_nonzero(near & inside) / total)
+
+
+@lru_cache(maxsize=16)
+def chamfer_ball(radius: float) -> np.ndarray:
+    """Structuring element of the offsets within ``radius`` (>= 0) of the centre by
+    OpenCV's 3x3 L2 chamfer distance.
+
+    That distance is a shortest path of axial and diagonal steps (both at least 0.95
+    pixels), so a pixel's distance transform is the smallest chamfer norm of its offset
+    to any set pixel, and ``distanceTransform(...) <= radius`` is exactly the set dilated
+    by this ball. The ball comes from the same transform, so the two agree to the bit.
+    """
+    half = int(radius / 0.95) + 1
+    canvas = np.full((2 * half + 1, 2 * half + 1), 255, np.uint8)
+    canvas[half, half] = 0
+    return (cv2.distanceTransform(canvas, cv2.DIST_L2, 3) <= radius).astype(np.uint8)
