@@ -17,9 +17,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.synthetic import shapes  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
-from brepose_ros.offline.compiler import compile_aspect_graph  # noqa: E402
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene, scene_summary  # noqa: E402
@@ -60,10 +60,7 @@ def main(argv=None) -> int:
     rows = []
     for name in parts:
         step = part_step(name, cache)
-        graph_path = cache / f"{step.stem}_{args.step_deg:g}deg.brepose.npz"
-        if not graph_path.exists():
-            compile_aspect_graph(step, step_deg=args.step_deg, progress=True).save(graph_path)
-        graph = AspectGraph.load(graph_path)
+        graph = AspectGraph.load(cached_graph_path(step, cache, args.step_deg))
         estimator = Estimator(graph)
         mesh = tessellate(load_step(step))
         model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)

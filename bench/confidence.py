@@ -21,8 +21,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.accuracy import CONDITIONS, part_step  # noqa: E402
+from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
-from brepose_ros.offline.compiler import compile_aspect_graph  # noqa: E402
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene  # noqa: E402
@@ -48,10 +48,7 @@ def main(argv=None) -> int:
     cache = REPO / "data" / "bench"
     cache.mkdir(parents=True, exist_ok=True)
     step = part_step(args.part, cache)
-    graph_path = cache / f"{step.stem}_{args.step_deg:g}deg.brepose.npz"
-    if not graph_path.exists():
-        compile_aspect_graph(step, step_deg=args.step_deg).save(graph_path)
-    estimator = Estimator(AspectGraph.load(graph_path))
+    estimator = Estimator(AspectGraph.load(cached_graph_path(step, cache, args.step_deg)))
     mesh = tessellate(load_step(step))
     model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
 

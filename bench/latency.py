@@ -24,8 +24,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.accuracy import part_step  # noqa: E402
+from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
-from brepose_ros.offline.compiler import compile_aspect_graph  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
 from brepose_ros.synthetic.scenes import generate_scene  # noqa: E402
@@ -54,10 +54,7 @@ def main(argv=None) -> int:
     print(f"| views | workers | {' | '.join(s + ' ms' for s in STAGES)} | images/s | setup s | peak RSS MB |")
     print("|" + "---|" * (len(STAGES) + 5))
     for views in args.views:
-        step_deg = fibonacci_step(views)
-        path = cache / f"{step.stem}_{views}views.brepose.npz"
-        if not path.exists():
-            compile_aspect_graph(step, step_deg=step_deg).save(path)
+        path = cached_graph_path(step, cache, fibonacci_step(views), label=f"{views}views")
         for workers in args.workers:
             start = time.perf_counter()
             graph = AspectGraph.load(path)

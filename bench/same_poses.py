@@ -23,8 +23,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.accuracy import CONDITIONS, part_step  # noqa: E402
+from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
-from brepose_ros.offline.compiler import compile_aspect_graph  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.synthetic.scenes import generate_scene  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
@@ -43,10 +43,7 @@ def poses() -> dict[str, np.ndarray]:
     out = {}
     for name in parts:
         step = part_step(name, cache)
-        graph_path = cache / f"{step.stem}_5deg.brepose.npz"
-        if not graph_path.exists():
-            compile_aspect_graph(step, step_deg=5.0).save(graph_path)
-        estimator = Estimator(AspectGraph.load(graph_path))
+        estimator = Estimator(AspectGraph.load(cached_graph_path(step, cache, 5.0)))
         for condition in SAME_CONDITIONS:
             folder = cache / f"scene_{step.stem}_{condition}_{N_IMAGES}_{SEED}"
             if not (folder / "gt.json").exists():

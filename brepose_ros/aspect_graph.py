@@ -1,23 +1,27 @@
 """The aspect graph file: the visible edges of a part from every viewpoint, checked on load.
 
 For each view on the sphere (``viewsphere``) the visible line sections (``hidden_lines``)
-are stored twice: normalised in the view plane for the matcher (the seed paper's metric
-space, ``metric_space``) and as 3D end points on the model, in metres, for the pose solver.
+are stored twice: in the view's orthographic image plane for the matcher, and as 3D end
+points on the model, in metres, for the pose solver.
 
-View 2D coordinates (the online matcher depends on them exactly): with
-``R_view = geometry.look_at_rotation(direction, up)`` the orthographic coordinates of a
-model point X are ``xy = (R_view @ (X - model_center))[:2]``; per view
-``norm = metric_space.normalisation_of(xy)`` and ``seg_2d = norm.apply(xy)``, with
-``norm_centers[i]``/``norm_scales[i]`` its centre and scale in metres.
+View coordinates: with ``R_view = view_rotations[i]`` (``geometry.look_at_rotation`` of
+the view direction) the orthographic coordinates of a model point X are
+``xy = (R_view @ (X - model_center))[:2]`` in metres. They are stored as float32
+``seg_xy`` relative to each view's own origin and unit (``xy_origin[i]``, ``xy_scale[i]``:
+the sections' length-weighted centroid and RMS radius), so that they keep float32's seven
+digits on the part's scale in half the bytes; ``view_xy(i)`` gives them back in metres. The
+matcher normalises them itself (``metric_space.outline_normalisation``, on the longest
+``matching.max_model_segments`` of a view).
 
 Segments are stored flat (CSR): the sections of view i are rows
-``seg_offsets[i]:seg_offsets[i + 1]`` of seg_2d, seg_3d, seg_kind and tetrads.
+``seg_offsets[i]:seg_offsets[i + 1]`` of seg_xy, seg_3d and seg_kind.
 
 The file (MODEL.brepose.npz) is data, never code: a deflated npz read with
 ``allow_pickle=False`` (deflate halves it: seg_3d repeats the same vertices view after
 view), plus a JSON metadata entry with the format version, the sha256 of
 the source STEP, the compile parameters, the units and the array shapes, and a sha256 over
-the metadata and the array bytes so that any change after writing is detected.
+the metadata and the array bytes so that any change after writing is detected. A file of
+another format version is refused with a message to recompile it.
 """
 from __future__ import annotations
 
@@ -32,25 +36,23 @@ from pathlib import Path
 
 import numpy as np
 
-from .metric_space import Normalisation
-
 FORMAT = "brepose-aspect-graph"
-FORMAT_VERSION = 1
+#: 2: view coordinates as seg_xy / xy_origin / xy_scale; no tetrads (the matcher computes
+#: its own features), no view_ups (view_rotations holds them)
+FORMAT_VERSION = 2
 SUFFIX = ".brepose.npz"
 
 #: name -> (dtype, shape with V = views, S = segments): the file's whole contract.
 _ARRAYS = {
     "model_center": (np.float64, ("3",)),
     "view_directions": (np.float64, ("V", "3")),
-    "view_ups": (np.float64, ("V", "3")),
     "view_rotations": (np.float64, ("V", "3", "3")),
     "seg_offsets": (np.int64, ("V+1",)),
-    "seg_2d": (np.float32, ("S", "2", "2")),
+    "seg_xy": (np.float32, ("S", "2", "2")),
+    "xy_origin": (np.float64, ("V", "2")),
+    "xy_scale": (np.float64, ("V",)),
     "seg_3d": (np.float64, ("S", "2", "3")),
     "seg_kind": (np.uint8, ("S",)),
-    "norm_centers": (np.float64, ("V", "2")),
-    "norm_scales": (np.float64, ("V",)),
-    "tetrads": (np.float32, ("S", "4")),
 }
 
 
@@ -60,20 +62,6 @@ _METADATA_KEYS = ("format_version", "step_sha256", "params", "units", "model_dia
 
 class AspectGraphError(ValueError):
     """An aspect graph that cannot be compiled or used, with the reason in the message."""
-
-
-@dataclass(frozen=True)
-class AspectView:
-    """One view of an aspect graph, as the matcher and the pose solver use it."""
-
-    index: int
-    direction: np.ndarray  # (3,) viewing direction, model frame
-    rotation: np.ndarray  # (3, 3) R_view = look_at_rotation(direction, up)
-    normalisation: Normalisation  # metres -> normalised view coordinates
-    seg_2d: np.ndarray  # (n, 2, 2) normalised view coordinates
-    seg_3d: np.ndarray  # (n, 2, 3) metres, model frame
-    seg_kind: np.ndarray  # (n,) 0 sharp, 1 outline, 2 smooth
-    tetrads: np.ndarray  # (n, 4) metric_space.tetrads(seg_2d)
 
 
 @dataclass(eq=False)
@@ -86,16 +74,13 @@ class AspectGraph:
     model_diameter: float
     n_faces: int
     view_directions: np.ndarray
-    view_ups: np.ndarray
     view_rotations: np.ndarray
     seg_offsets: np.ndarray
-    seg_2d: np.ndarray
+    seg_xy: np.ndarray
+    xy_origin: np.ndarray
+    xy_scale: np.ndarray
     seg_3d: np.ndarray
     seg_kind: np.ndarray
-    norm_centers: np.ndarray
-    norm_scales: np.ndarray
-    tetrads: np.ndarray
-    format_version: int = FORMAT_VERSION
 
     @property
     def n_views(self) -> int:
@@ -106,7 +91,7 @@ class AspectGraph:
         return len(self.seg_kind)
 
     def view_slice(self, i: int) -> slice:
-        """Rows of seg_2d, seg_3d, seg_kind and tetrads that belong to view ``i``."""
+        """Rows of seg_xy, seg_3d and seg_kind that belong to view ``i``."""
         return slice(int(self.seg_offsets[i]), int(self.seg_offsets[i + 1]))
 
     def nearest_views(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -123,11 +108,9 @@ class AspectGraph:
         """Rows of the segments visible from the view nearest to the pose."""
         return self.view_slice(self.nearest_view(R, t))
 
-    def segments_of(self, i: int) -> AspectView:
-        rows = self.view_slice(i)
-        return AspectView(i, self.view_directions[i], self.view_rotations[i],
-                          Normalisation(self.norm_centers[i], float(self.norm_scales[i])),
-                          self.seg_2d[rows], self.seg_3d[rows], self.seg_kind[rows], self.tetrads[rows])
+    def view_xy(self, i: int) -> np.ndarray:
+        """The orthographic view coordinates (n, 2, 2) of view ``i``'s sections, in metres."""
+        return self.seg_xy[self.view_slice(i)] * self.xy_scale[i] + self.xy_origin[i]
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {name: getattr(self, name) for name in _ARRAYS}
@@ -135,7 +118,7 @@ class AspectGraph:
     def _metadata(self) -> dict:
         return {
             "format": FORMAT,
-            "format_version": self.format_version,
+            "format_version": FORMAT_VERSION,
             "step_sha256": self.step_sha256,
             "params": self.params,
             "units": "m",
@@ -172,12 +155,6 @@ class AspectGraph:
         from that STEP file. Raises AspectGraphError naming what is wrong."""
         path = Path(path)
         metadata, arrays = _read(path)
-        version = metadata.get("format_version")
-        if not isinstance(version, int) or version < 1:
-            raise AspectGraphError(f"{path}: invalid format version {version!r}")
-        if version > FORMAT_VERSION:
-            raise AspectGraphError(f"{path}: format version {version} is newer than this brepose_ros "
-                                   f"reads (up to {FORMAT_VERSION}); update brepose_ros or recompile")
         _check_arrays(path, metadata, arrays)
         claimed = metadata.pop("content_sha256", None)
         if claimed != _digest(metadata, arrays):
@@ -190,8 +167,7 @@ class AspectGraph:
                                        f"(sha256 {metadata['step_sha256'][:12]}... vs {actual[:12]}...); "
                                        f"recompile it")
         return cls(step_sha256=metadata["step_sha256"], params=metadata["params"],
-                   model_diameter=float(metadata["model_diameter"]), n_faces=int(metadata["n_faces"]),
-                   format_version=version, **arrays)
+                   model_diameter=float(metadata["model_diameter"]), n_faces=int(metadata["n_faces"]), **arrays)
 
 
 def default_path(step_path: str | Path) -> Path:
@@ -232,7 +208,7 @@ def _read(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
         with np.load(path, allow_pickle=False) as npz:
             if "metadata" not in npz.files:
                 raise AspectGraphError(f"{path} is an npz file but not an aspect graph (no metadata)")
-            text = str(npz["metadata"])
+            metadata = _parse_metadata(path, str(npz["metadata"]))
             missing = [name for name in _ARRAYS if name not in npz.files]
             if missing:
                 raise AspectGraphError(f"{path} lacks the array(s) {', '.join(missing)}")
@@ -244,6 +220,12 @@ def _read(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
                                f"after it was written (tampered with or corrupted); recompile it") from error
     except Exception as error:  # zipfile, zlib and numpy report damage in different ways
         raise AspectGraphError(f"{path} is truncated or corrupt ({type(error).__name__}: {error})") from error
+    return metadata, arrays
+
+
+def _parse_metadata(path: Path, text: str) -> dict:
+    """The metadata of a graph file of this format version, or AspectGraphError saying why
+    not; checked before any array, since the version decides which arrays there are."""
     try:
         metadata = json.loads(text)
     except json.JSONDecodeError as error:
@@ -251,10 +233,19 @@ def _read(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
     if not isinstance(metadata, dict) or metadata.get("format") != FORMAT:
         raise AspectGraphError(f"{path} is an npz file but not a {FORMAT} (metadata format "
                                f"{metadata.get('format') if isinstance(metadata, dict) else None!r})")
+    version = metadata.get("format_version")
+    if not isinstance(version, int) or version < 1:
+        raise AspectGraphError(f"{path}: invalid format version {version!r}")
+    if version > FORMAT_VERSION:
+        raise AspectGraphError(f"{path}: format version {version} is newer than this brepose_ros "
+                               f"reads ({FORMAT_VERSION}); update brepose_ros or recompile")
+    if version < FORMAT_VERSION:
+        raise AspectGraphError(f"{path}: format version {version} is older than this brepose_ros reads "
+                               f"({FORMAT_VERSION}); recompile it with brepose-compile")
     missing = [key for key in _METADATA_KEYS if key not in metadata]
     if missing:
         raise AspectGraphError(f"{path}: its metadata lacks {', '.join(missing)}")
-    return metadata, arrays
+    return metadata
 
 
 def _check_arrays(path: Path, metadata: dict, arrays: dict[str, np.ndarray]) -> None:

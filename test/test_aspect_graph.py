@@ -16,8 +16,7 @@ from brepose_ros.offline.compiler import compile_aspect_graph
 from brepose_ros.offline.cad import load_step
 from brepose_ros.geometry import look_at_rotation, normalize
 from brepose_ros.offline.hidden_lines import METHODS, OUTLINE, SHARP, HiddenLineRemover, view_coordinates
-from brepose_ros.metric_space import normalisation_of, tetrads
-from brepose_ros.viewsphere import fibonacci_directions, lonlat_directions, nearest_views
+from brepose_ros.viewsphere import fibonacci_directions, lonlat_directions, nearest_views, view_ups
 
 
 # ----------------------------------------------------------------------------- view sphere
@@ -176,20 +175,17 @@ def graph(sample_step):
 
 
 def test_graph_layout_follows_the_view_coordinate_convention(graph):
-    assert graph.n_views == len(fibonacci_directions(30.0)) == len(graph.norm_scales)
+    assert graph.n_views == len(fibonacci_directions(30.0)) == len(graph.xy_scale)
     assert graph.seg_offsets[0] == 0 and graph.seg_offsets[-1] == graph.n_segments
-    assert graph.seg_2d.shape == (graph.n_segments, 2, 2) and graph.seg_3d.dtype == np.float64
+    assert graph.seg_xy.shape == (graph.n_segments, 2, 2) and graph.seg_3d.dtype == np.float64
     assert graph.params["units"] == "m" and graph.params["method"] in METHODS
     for i in range(graph.n_views):
-        view = graph.segments_of(i)
-        rotation = look_at_rotation(graph.view_directions[i], graph.view_ups[i])
-        assert np.allclose(view.rotation, rotation)
-        xy = (view.seg_3d - graph.model_center) @ rotation[:2].T
-        norm = normalisation_of(xy)
-        assert np.allclose(norm.center, graph.norm_centers[i]) and norm.scale == pytest.approx(graph.norm_scales[i])
-        assert np.allclose(view.seg_2d, norm.apply(xy), atol=1e-6)
-        assert np.allclose(view.normalisation.undo(view.seg_2d), xy, atol=1e-6 * graph.model_diameter)
-    assert np.allclose(graph.tetrads, tetrads(graph.seg_2d.astype(float)), atol=1e-6)
+        rotation = look_at_rotation(graph.view_directions[i], view_ups(graph.view_directions[i:i + 1])[0])
+        assert np.allclose(graph.view_rotations[i], rotation)
+        xy = (graph.seg_3d[graph.view_slice(i)] - graph.model_center) @ rotation[:2].T
+        # float32 storage relative to the view's own size: 7 digits of the part's diameter
+        assert np.abs(graph.view_xy(i) - xy).max() < 1e-6 * graph.model_diameter
+        assert np.abs(graph.seg_xy[graph.view_slice(i)]).max() < 10.0  # relative to the view's own unit
 
 
 def test_parallel_compile_gives_the_same_graph(sample_step, graph):
@@ -204,8 +200,8 @@ def test_save_load_round_trip_is_identical(graph, sample_step, tmp_path):
     loaded = AspectGraph.load(path, step_path=sample_step)
     for name, array in graph.arrays().items():
         assert array.dtype == getattr(loaded, name).dtype and np.array_equal(array, getattr(loaded, name)), name
-    assert (loaded.params, loaded.step_sha256, loaded.n_faces, loaded.model_diameter, loaded.format_version) == \
-        (graph.params, graph.step_sha256, graph.n_faces, graph.model_diameter, graph.format_version)
+    assert (loaded.params, loaded.step_sha256, loaded.n_faces, loaded.model_diameter) == \
+        (graph.params, graph.step_sha256, graph.n_faces, graph.model_diameter)
     with np.load(path, allow_pickle=False) as npz:  # plain data: no pickled objects inside
         assert all(npz[name].dtype != object for name in npz.files)
 
@@ -263,12 +259,13 @@ def rewritten(**changes):
     (rewritten(seg_3d=lambda a: a + 1e-6), "content digest mismatch"),
     (rewritten(params=lambda d: {**d, "chord_tolerance": 0.5}), "content digest mismatch"),
     (rewritten(format_version=lambda v: v + 1), "newer than this brepose_ros"),
-    (rewritten(tetrads=lambda a: None), "lacks the array"),
+    (rewritten(format_version=lambda v: 1, seg_xy=lambda a: None), "format version 1 is older .* recompile it"),
+    (rewritten(seg_xy=lambda a: None), "lacks the array"),
     (rewritten(step_sha256=lambda a: None), "metadata lacks step_sha256"),
     (rewritten(seg_kind=lambda a: a.astype(np.int64)), "array seg_kind has dtype int64"),
-    (rewritten(norm_scales=lambda a: a[:-1]), "array norm_scales has dtype .* shape"),
+    (rewritten(xy_scale=lambda a: a[:-1]), "array xy_scale has dtype .* shape"),
 ], ids=["missing", "not-npz", "truncated", "flipped-byte", "array-edited", "metadata-edited", "newer-version",
-        "missing-array", "missing-metadata", "wrong-dtype", "wrong-shape"])
+        "older-version", "missing-array", "missing-metadata", "wrong-dtype", "wrong-shape"])
 def test_damaged_files_are_refused_naming_the_cause(graph, tmp_path, damage, message):
     path = damage(graph.save(tmp_path / "sample.brepose.npz"), tmp_path)
     with pytest.raises(AspectGraphError, match=message):

@@ -141,7 +141,7 @@ def evidence_image():
 
 
 def reference_support(edge_map, gray, model_px, tolerance):
-    """support as first written: one distance map per direction bin, three look-ups."""
+    """EdgeEvidence.supports of one pose as first written: one distance map per direction bin, three look-ups."""
     ev = scoring.EdgeEvidence(edge_map, gray)
     smooth = cv2.GaussianBlur(gray.astype(np.float32), (5, 5), 0)
     dx, dy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0), cv2.Sobel(smooth, cv2.CV_32F, 0, 1)
@@ -181,7 +181,7 @@ def test_edge_evidence_matches_the_distance_transform_definitions(evidence_image
     edge_map, gray, models = evidence_image
     evidence = scoring.EdgeEvidence(edge_map, gray)
     for model_px in models:
-        assert evidence.support(model_px, tolerance) == pytest.approx(
+        assert evidence.supports(model_px, np.array([0, len(model_px)]), tolerance)[0] == pytest.approx(
             reference_support(edge_map, gray, model_px, tolerance), abs=1e-12)
         assert evidence.explained(model_px, tolerance) == pytest.approx(
             reference_explained(edge_map, model_px, tolerance), abs=1e-12)
@@ -192,7 +192,8 @@ def test_supports_of_a_batch_are_each_pose_alone(evidence_image):
     evidence = scoring.EdgeEvidence(edge_map, gray)
     spans = np.cumsum([0] + [len(m) for m in models])
     together = evidence.supports(np.concatenate(models), spans, 2.0)
-    assert [float(s) for s in together] == [evidence.support(m, 2.0) for m in models]
+    assert [float(s) for s in together] == [float(evidence.supports(m, np.array([0, len(m)]), 2.0)[0])
+                                            for m in models]
 
 
 def test_polish_pose_pulls_a_pose_three_percent_too_far_onto_the_edge_pixels():

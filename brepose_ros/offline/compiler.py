@@ -1,8 +1,7 @@
 """Stage 2 (offline): compile the aspect graph of a STEP part, view by view in parallel processes.
 
 For each view on the sphere (``viewsphere``) the visible line sections (``hidden_lines``)
-are normalised in the view plane (``metric_space``) and laid out flat as the
-``aspect_graph`` file format describes.
+are laid out flat as the ``aspect_graph`` file format describes.
 """
 from __future__ import annotations
 
@@ -13,7 +12,7 @@ import numpy as np
 
 from ..aspect_graph import AspectGraph, AspectGraphError
 from ..geometry import look_at_rotation
-from ..metric_space import normalisation_of, tetrads
+from ..metric_space import normalisation_of
 from ..viewsphere import fibonacci_directions, lonlat_directions, view_ups
 from .cad import load_step
 from .hidden_lines import (DEFAULT_CHORD_TOLERANCE, DEFAULT_METHOD, DEFAULT_MIN_LENGTH, KIND_NAMES,
@@ -101,30 +100,29 @@ def compile_aspect_graph(step_path: str | Path, step_deg: float = DEFAULT_STEP_D
                   sampling="lonlat" if lonlat is not None else "fibonacci",
                   step_deg=None if lonlat is not None else float(step_deg), lonlat=lonlat,
                   kinds=list(KIND_NAMES), step_file=Path(step_path).name, **options)
-    return _assemble(part, params, directions, ups, rotations, views)
+    return _assemble(part, params, directions, rotations, views)
 
 
-def _assemble(part, params, directions, ups, rotations, views) -> AspectGraph:
-    """Normalise every view's sections and lay them out flat."""
-    seg_2d, norm_centers, norm_scales = [], [], []
+def _assemble(part, params, directions, rotations, views) -> AspectGraph:
+    """Every view's sections in its view coordinates, laid out flat."""
+    seg_xy, xy_origin, xy_scale = [], [], []
     for i, ((seg_3d, _), rotation) in enumerate(zip(views, rotations)):
         xy = view_coordinates(seg_3d, rotation, part.center)
         if len(xy) == 0:
             raise AspectGraphError(f"view {i} (direction {np.round(directions[i], 4).tolist()}) shows no "
                                    f"edge longer than the minimum length; lower min_length")
-        norm = normalisation_of(xy)
-        seg_2d.append(norm.apply(xy).astype(np.float32))
-        norm_centers.append(norm.center)
-        norm_scales.append(norm.scale)
-    counts = [len(s) for s in seg_2d]
-    seg_2d = np.concatenate(seg_2d)
+        frame = normalisation_of(xy)  # the view's own origin and unit for float32 storage
+        seg_xy.append(frame.apply(xy).astype(np.float32))
+        xy_origin.append(frame.center)
+        xy_scale.append(frame.scale)
+    counts = [len(s) for s in seg_xy]
     return AspectGraph(
         step_sha256=part.sha256, params=params, model_center=np.asarray(part.center, dtype=np.float64),
         model_diameter=float(part.diameter), n_faces=int(part.n_faces),
-        view_directions=np.asarray(directions, dtype=np.float64), view_ups=np.asarray(ups, dtype=np.float64),
+        view_directions=np.asarray(directions, dtype=np.float64),
         view_rotations=np.asarray(rotations, dtype=np.float64),
         seg_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-        seg_2d=seg_2d, seg_3d=np.concatenate([s for s, _ in views]).astype(np.float64),
-        seg_kind=np.concatenate([k for _, k in views]).astype(np.uint8),
-        norm_centers=np.array(norm_centers, dtype=np.float64), norm_scales=np.array(norm_scales, dtype=np.float64),
-        tetrads=tetrads(seg_2d.astype(np.float64)).astype(np.float32))
+        seg_xy=np.concatenate(seg_xy), xy_origin=np.array(xy_origin, dtype=np.float64),
+        xy_scale=np.array(xy_scale, dtype=np.float64),
+        seg_3d=np.concatenate([s for s, _ in views]).astype(np.float64),
+        seg_kind=np.concatenate([k for _, k in views]).astype(np.uint8))

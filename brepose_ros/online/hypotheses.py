@@ -47,8 +47,7 @@ class ViewLibrary:
         self.normalisation = []
         self.features: list[matching.SegmentFeatures] = []
         for v in range(graph.n_views):
-            lo, hi = graph.seg_offsets[v], graph.seg_offsets[v + 1]
-            metric = graph.seg_2d[lo:hi] * graph.norm_scales[v] + graph.norm_centers[v]
+            metric = graph.view_xy(v)
             metric = metric[matching.longest(metric, max_segments)]
             norm = outline_normalisation(metric)
             self.normalisation.append(norm)

@@ -173,11 +173,6 @@ class Assignment:
     n_model: np.ndarray  # (J,)
     empty_distance: np.ndarray  # (J,)
 
-    @property
-    def error_ratio(self) -> np.ndarray:
-        """Share of the view's model edges outside the nearest group (CONVENTIONS.md)."""
-        return 1.0 - self.nearest.sum(axis=1) / np.maximum(self.n_model, 1)
-
 
 def assign(model: SegmentBatch, image: SegmentFeatures, phi: np.ndarray, p: MatchParams) -> Assignment:
     """Bipartite matching with empty elements on both sides, for each set of the batch.

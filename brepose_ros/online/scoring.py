@@ -111,7 +111,7 @@ class EdgeEvidence:
     separates right from wrong poses far better (on cluttered renders the true pose scored
     above every wrongly chosen one, where the segment-based score did not).
 
-    * ``support`` (model -> image): share of the projected model edge length within
+    * ``supports`` (model -> image): share of the projected model edge length within
       ``tolerance`` of an edge pixel of like direction (oriented chamfer: each model point
       looks up the distance to the nearest edge pixel in its direction bin or the two next
       to it).
@@ -128,7 +128,7 @@ class EdgeEvidence:
     ``tolerance``, so neither computes distances: with OpenCV's 3x3 chamfer distance
     (``cv2.distanceTransform(..., DIST_L2, 3)``, an exact shortest path in integer steps)
     "within r of a set" is the set dilated by the chamfer ball of radius r
-    (``chamfer_ball``), several times cheaper than the transform. ``support`` dilates,
+    (``chamfer_ball``), several times cheaper than the transform. ``supports`` dilates,
     once per tolerance, the edge pixels of each direction bin together with the two next
     to it, so that a model point needs one look-up.
     """
@@ -163,13 +163,10 @@ class EdgeEvidence:
     def _bins_of(self, d: np.ndarray) -> np.ndarray:
         return (np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi) / np.pi * self.BINS).astype(int) % self.BINS
 
-    def support(self, model_px: np.ndarray, tolerance_px: float) -> float:
-        return float(self.supports(model_px, np.array([0, len(model_px)]), tolerance_px)[0])
-
     def supports(self, model_px: np.ndarray, spans: np.ndarray, tolerance_px: float) -> np.ndarray:
-        """``support`` of several poses at once, segments ``spans[b]:spans[b + 1]`` of
-        ``model_px`` belonging to pose b: the look-ups of all poses run together, each
-        pose's sums separately (the same sums as alone)."""
+        """The model -> image share (class doc) of several poses at once, segments
+        ``spans[b]:spans[b + 1]`` of ``model_px`` (pixels) belonging to pose b: the look-ups
+        of all poses run together, each pose's sums separately (the same sums as alone)."""
         if tolerance_px not in self._near_like:
             # one pixel of False around the image: points outside it are clipped onto that
             # border instead of being masked out (a mask costs several array operations)

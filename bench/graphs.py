@@ -1,0 +1,20 @@
+"""Aspect graphs the benchmarks share, compiled once into a cache folder (data/bench/).
+
+A cached file's name carries the graph format version, so that checkouts on different
+format versions sharing one data/ folder each compile and keep their own file.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from brepose_ros.aspect_graph import FORMAT_VERSION, SUFFIX
+from brepose_ros.offline.compiler import compile_aspect_graph
+
+
+def cached_graph_path(step: Path, cache: Path, step_deg: float, label: str | None = None) -> Path:
+    """``cache/<stem>_<label>_v<FORMAT_VERSION>.brepose.npz`` (label: ``<step_deg>deg``),
+    the aspect graph of ``step`` at ``step_deg``, compiled there first if absent."""
+    path = cache / f"{step.stem}_{label or f'{step_deg:g}deg'}_v{FORMAT_VERSION}{SUFFIX}"
+    if not path.exists():
+        compile_aspect_graph(step, step_deg=step_deg).save(path)
+    return path
