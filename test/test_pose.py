@@ -7,6 +7,7 @@ import pytest
 from brepose_ros.camera import project_normalised
 from brepose_ros.geometry import rot_z, rotation_angle_deg
 from brepose_ros.online import refinement, scoring
+from brepose_ros.online.image_edges import EdgeParams, gradients
 from brepose_ros.online.lines2d import nearest_lines
 
 
@@ -140,9 +141,14 @@ def evidence_image():
     return edge_map, gray, models
 
 
+def evidence_of(edge_map, gray):
+    """EdgeEvidence on the gradient of the edge stage's default blur."""
+    return scoring.EdgeEvidence(edge_map, *gradients(gray.astype(np.float32), EdgeParams()))
+
+
 def reference_support(edge_map, gray, model_px, tolerance):
     """EdgeEvidence.supports of one pose as first written: one distance map per direction bin, three look-ups."""
-    ev = scoring.EdgeEvidence(edge_map, gray)
+    ev = evidence_of(edge_map, gray)
     smooth = cv2.GaussianBlur(gray.astype(np.float32), (5, 5), 0)
     dx, dy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0), cv2.Sobel(smooth, cv2.CV_32F, 0, 1)
     bins = (np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi) / np.pi * ev.BINS).astype(int) % ev.BINS
@@ -179,7 +185,7 @@ def reference_explained(edge_map, model_px, tolerance):
 @pytest.mark.parametrize("tolerance", [1.0, 2.0, 3.5])
 def test_edge_evidence_matches_the_distance_transform_definitions(evidence_image, tolerance):
     edge_map, gray, models = evidence_image
-    evidence = scoring.EdgeEvidence(edge_map, gray)
+    evidence = evidence_of(edge_map, gray)
     for model_px in models:
         assert evidence.supports(model_px, np.array([0, len(model_px)]), tolerance)[0] == pytest.approx(
             reference_support(edge_map, gray, model_px, tolerance), abs=1e-12)
@@ -189,7 +195,7 @@ def test_edge_evidence_matches_the_distance_transform_definitions(evidence_image
 
 def test_supports_of_a_batch_are_each_pose_alone(evidence_image):
     edge_map, gray, models = evidence_image
-    evidence = scoring.EdgeEvidence(edge_map, gray)
+    evidence = evidence_of(edge_map, gray)
     spans = np.cumsum([0] + [len(m) for m in models])
     together = evidence.supports(np.concatenate(models), spans, 2.0)
     assert [float(s) for s in together] == [float(evidence.supports(m, np.array([0, len(m)]), 2.0)[0])
@@ -200,7 +206,7 @@ def test_polish_pose_pulls_a_pose_three_percent_too_far_onto_the_edge_pixels():
     """A cube's three visible faces drawn in three grey levels: polishing a pose 3 % too
     far away and turned by a degree on the image's Canny pixels recovers the true pose."""
     from brepose_ros.camera import Camera
-    from brepose_ros.online.image_edges import EdgeParams, detect_edges
+    from brepose_ros.online.image_edges import detect_edges
 
     camera = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)
     R_true, t_true = cv2.Rodrigues(np.array([0.5, -0.6, 0.3]))[0], np.array([0.01, -0.005, 0.3])
@@ -213,7 +219,7 @@ def test_polish_pose_pulls_a_pose_three_percent_too_far_onto_the_edge_pixels():
         cv2.fillConvexPoly(image, np.rint(camera.project_model(corners[face], R_true, t_true)).astype(np.int32), grey)
         segments += [(corners[a], corners[b]) for a, b in zip(face, face[1:] + face[:1])]
     edges = detect_edges(image, EdgeParams())
-    evidence = scoring.EdgeEvidence(edges.edge_map, edges.gray)
+    evidence = scoring.EdgeEvidence(edges.edge_map, edges.gradient_x, edges.gradient_y)
     R0, t0 = cv2.Rodrigues(np.radians([1.0, 0.0, 0.0]))[0] @ R_true, 1.03 * t_true
     R, t = refinement.polish_pose(R0, t0, np.array(segments), weights=np.ones(len(segments)), evidence=evidence,
                                   camera=camera, radius_px=2.0, rounds=6, spacing_px=3.0, f_scale=1.0 / 600.0,

@@ -23,6 +23,6 @@ class Frame:
 
     @classmethod
     def of(cls, edges: ImageEdges, camera: Camera) -> "Frame":
-        evidence = EdgeEvidence(edges.edge_map, edges.gray)
+        evidence = EdgeEvidence(edges.edge_map, edges.gradient_x, edges.gradient_y)
         return cls(segments_px=edges.segments, segments_n=camera.undistort(edges.segments), camera=camera,
                    evidence=evidence, edge_points_n=camera.undistort(evidence.pixels))

@@ -45,10 +45,13 @@ _DERIVATIVE_SCALE = 16.0
 
 @dataclass
 class ImageEdges:
-    """What the edge stage found in one image: the gray image, Canny's edge pixels and the
-    merged line segments (N, 2, 2), longest first. Later stages score poses on the pixels."""
+    """What the edge stage found in one image: the gray image, the gradient Canny ran on,
+    Canny's edge pixels and the merged line segments (N, 2, 2), longest first. Later stages
+    score poses on the pixels and their gradient directions."""
 
     gray: np.ndarray
+    gradient_x: np.ndarray  # float32 Sobel derivatives of the blurred gray image
+    gradient_y: np.ndarray
     edge_map: np.ndarray
     segments: np.ndarray
 
@@ -62,8 +65,10 @@ def detect_edges(image: np.ndarray, params: EdgeParams = EdgeParams()) -> ImageE
     """
     gray = to_gray(image)
     if gray.max() == gray.min():
-        return ImageEdges(gray, np.zeros(gray.shape, np.uint8), np.zeros((0, 2, 2)))
-    edges = canny_edges(gray, params)
+        flat = np.zeros(gray.shape, np.float32)
+        return ImageEdges(gray, flat, flat, np.zeros(gray.shape, np.uint8), np.zeros((0, 2, 2)))
+    dx, dy = gradients(gray, params)
+    edges = canny_from_gradients(dx, dy, params)
     if params.detector == "lsd":
         merged = merge_segments(lsd_segments(gray, params), params)
     else:
@@ -72,7 +77,7 @@ def detect_edges(image: np.ndarray, params: EdgeParams = EdgeParams()) -> ImageE
             merged = merge_segments(refine_segments(merged, edges, params), params)
     lengths = np.linalg.norm(merged[:, 1] - merged[:, 0], axis=1)
     merged = merged[lengths >= params.min_length_fraction * float(np.hypot(*gray.shape))]
-    return ImageEdges(gray, edges, merged[: params.max_segments])
+    return ImageEdges(gray, dx, dy, edges, merged[: params.max_segments])
 
 
 def extract_segments(image: np.ndarray, params: EdgeParams = EdgeParams()) -> np.ndarray:
@@ -122,12 +127,20 @@ def canny_thresholds(magnitude: np.ndarray, params: EdgeParams) -> tuple[float, 
     return params.canny_low_ratio * high, high
 
 
-def canny_edges(gray: np.ndarray, params: EdgeParams) -> np.ndarray:
-    """uint8 edge map (255 on edges) of a :func:`to_gray` image: blur, then adaptive Canny."""
+def gradients(gray: np.ndarray, params: EdgeParams) -> tuple[np.ndarray, np.ndarray]:
+    """Sobel derivatives (x, y), float32, of a :func:`to_gray` image after the blur."""
     if params.blur_size > 1:
         gray = cv2.GaussianBlur(gray, (params.blur_size, params.blur_size), params.blur_sigma)
-    dx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
-    dy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+    return cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+
+
+def canny_edges(gray: np.ndarray, params: EdgeParams) -> np.ndarray:
+    """uint8 edge map (255 on edges) of a :func:`to_gray` image: blur, then adaptive Canny."""
+    return canny_from_gradients(*gradients(gray, params), params)
+
+
+def canny_from_gradients(dx: np.ndarray, dy: np.ndarray, params: EdgeParams) -> np.ndarray:
+    """Adaptive Canny on the derivatives of ``gradients``."""
     low, high = canny_thresholds(cv2.magnitude(dx, dy), params)
     dx16 = np.round(dx * _DERIVATIVE_SCALE).astype(np.int16)
     dy16 = np.round(dy * _DERIVATIVE_SCALE).astype(np.int16)

@@ -137,13 +137,12 @@ class EdgeEvidence:
     OUTLINE_MARGIN = 0.2
     MIN_MARGIN_PX = 40.0
 
-    def __init__(self, edge_map: np.ndarray, gray: np.ndarray):
+    def __init__(self, edge_map: np.ndarray, gradient_x: np.ndarray, gradient_y: np.ndarray):
+        """From Canny's edge map and the image gradient it was found on (``ImageEdges``)."""
         self.shape = edge_map.shape
         self.edges = edge_map > 0
         rows, cols = np.nonzero(self.edges)
-        smooth = cv2.GaussianBlur(np.asarray(gray, np.float32), (5, 5), 0)
-        dx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0)[rows, cols]
-        dy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1)[rows, cols]
+        dx, dy = gradient_x[rows, cols], gradient_y[rows, cols]
         #: the edge pixels (x, y) and the direction each edge runs in, modulo pi (across the
         #: gradient): the pre-filter's picture of an image region
         self.pixels = np.stack([cols, rows], axis=1)
