@@ -82,6 +82,10 @@ class MatchParams:
     max_model_segments: int = doc("longest view segments used in matching", 60)
     max_image_segments: int = doc("longest image segments used in matching per region", 90)
     max_regions: int = doc("candidate image regions (whole image, edge clusters) matched per image", 6)
+    cluster_gap_fraction: float = doc(
+        "segments whose end points lie closer than this share of the image diagonal chain into one cluster "
+        "(a candidate region); as long as the shortest segment kept (edges.min_length_fraction), so that the "
+        "edges of one part meeting at its corners chain, while objects apart by more stay apart", 0.03)
     hypotheses: int = doc("best-covered (view, rotation) hypotheses per region turned into poses and verified", 6)
     workers: int = doc("worker threads that split each region's batch of (view, rotation) jobs; 1 by default: the batched steps are short and mostly hold the GIL, and 2 threads measured no faster (bench/latency.py)", 1)
 

@@ -106,7 +106,7 @@ class Estimator:
         if len(edges.segments) < MIN_REGION_SEGMENTS:
             return not_found
         frame = Frame.of(edges, camera)
-        groups = region_groups(frame, p.matching.max_regions)
+        groups = region_groups(frame, p.matching)
         candidates = []
         # the whole image first: when it holds a clear pose, the clusters (pieces of the
         # same part, or the part among clutter) cannot add one, and their pre-filter,

@@ -7,10 +7,8 @@ each aligned job becomes a ``Hypothesis``: the similarity from the view's orthog
 coordinates (metres) to the region's virtual image (normalised coordinates), which
 ``refinement.pose_from_similarity`` turns into a first metric pose.
 
-``matching.workers`` threads split each region's batch between them. Measured
-(bench/latency.py, 1,505 views, the other core busy), 2 threads are still no faster than
-1 (matching 38-46 against 33-40 ms per image): the batched steps are short and most of
-them hold the GIL; so the default is 1.
+``matching.workers`` threads split each region's batch between them (1 by default: the
+batched steps are short and most of them hold the GIL).
 """
 from __future__ import annotations
 
@@ -54,9 +52,8 @@ class ViewLibrary:
             self.features.append(matching.describe(norm.apply(metric)))
         histograms = np.stack([orientation_histogram(f.orientations, f.lengths) for f in self.features])
         self.orientation_spectra = orientation_spectra(histograms)
-        #: matching pads every view's segment set to this size: the largest view's, not
-        #: ``max_segments``; the sharp bracket's views have at most 36 segments, and padding
-        #: them to 36 instead of 60 takes its matching from 39 to 31 ms per image
+        #: matching pads every view's segment set to this size, the largest view's rather
+        #: than ``max_segments``: padding costs time in every batched step
         self.pad_size = max(len(f.segments) for f in self.features)
         self.prefilter = ChamferPrefilter([f.segments for f in self.features])
 

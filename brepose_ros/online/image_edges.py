@@ -14,14 +14,9 @@ and merges the pieces of one edge by nearest-neighbour clustering under a contig
    along it (Hough end points are quantised and Hough loses the ends of edges), then
    merged again.
 
-``detector="lsd"`` replaces steps 2, 3 and 5 by OpenCV's LSD detector. On the synthetic
-scene of the tests (14 polygon edges, 10 noise seeds, contrast 35-60 grey levels, noise
-sigma 4) both give exactly one segment per edge and nothing else; end points are off by
-1.3 px for Hough and 1.1 px for LSD (median, both at most 2.1 px), angles by 0.14 deg
-(at most 0.6 and 0.5 deg). With a fifth of the contrast (noise sigma 1) Hough still
-finds all edges as accurately and LSD none: its gradient threshold is fixed. Both take
-about the same time (``bench/edges.py``). LSD is not clearly better, so the default is
-the paper's Canny + Hough.
+``detector="lsd"`` replaces steps 2, 3 and 5 by OpenCV's LSD detector. The default stays
+the paper's Canny + Hough: as accurate on the test scenes, and it still finds faint edges
+where LSD's fixed gradient threshold finds none (docs/DECISIONS.md).
 
 Coordinates are pixels, x right, y down, pixel centres at integer coordinates.
 """

@@ -26,7 +26,8 @@ def nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, tolerance: float,
 
     A model segment keeps the image segment whose end points lie closest to the model's
     line, provided that is within ``tolerance``, the directions agree within
-    ``max_angle_deg`` and the two overlap along the line.
+    ``max_angle_deg`` (10 by default: a pose a little off turns its projected edges by a
+    few degrees) and the two overlap along the line.
     """
     if len(model_2d) == 0 or len(image_2d) == 0:
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)

@@ -1,10 +1,11 @@
-"""Stage 4: compare an image's edge set with the views' edge sets (seed paper section 6).
+"""The correspondence step: an image region's edge set against views' edge sets (seed
+paper section 6).
 
 For one image region and one view, both normalised for translation and scale
 (``metric_space``), the distance matrix of their tetrads is solved as a bipartite
 assignment with empty elements (Kuhn-Munkres, ``scipy.optimize.linear_sum_assignment``);
-the matched pairs split into the nearest group and the rest; the view is ranked by its
-distance sum and its nearest-pair ratio.
+the matched pairs split into the nearest group and the rest. ``align`` chains the steps
+and ranks the aligned views by coverage.
 
 Where this goes beyond the paper, and why:
 
@@ -22,16 +23,12 @@ Where this goes beyond the paper, and why:
 * The matched pairs also give a similarity transform (Procrustes on the nearest pairs),
   which corrects the image normalisation that clutter and occlusion bias.
 * Ranking. After that alignment, views are ranked by how much of the view's and of the
-  region's edge length the other set covers (``coverage``, an F-measure). On rendered
-  sharp brackets, the view with the lowest distance sum was within 15 degrees of the
-  truth for 4 of 12 images, the one with the best coverage for 10 of 12; the distance
-  sum and the nearest-pair ratio are still reported (score, error ratio).
-* Batches. The jobs of one region (the pre-filter's (view, rotation) pairs) run
-  together: the views' segment sets are zero-padded to one size (``SegmentBatch``) and
-  every step but Kuhn-Munkres, which runs per job on its real rows, is one array
-  operation for all jobs. Job by job, each job was ~40 small numpy calls whose overhead
-  was much of its time. Distance matrices and assignments equal the job-by-job ones to
-  the bit; the similarities agree to about 1e-11 (sums in another order).
+  region's edge length the other set covers (``coverage``, an F-measure), which picks the
+  right view far more often than the assignment's distance sum (docs/DECISIONS.md).
+* Batches. The jobs of one region run together: the views' segment sets are zero-padded
+  to one size (``SegmentBatch``) and every step but Kuhn-Munkres, which runs per job on
+  its real rows, is one array operation for all jobs, since per-call overhead dominated
+  job by job. Distance matrices and assignments equal the job-by-job ones to the bit.
 """
 from __future__ import annotations
 
@@ -271,7 +268,10 @@ def coverage(model: np.ndarray, valid: np.ndarray, image: np.ndarray, tolerance:
     """Two-way edge coverage of each model set (J, M, 2, 2; ``valid`` marks real segments)
     and the image segments: the share of the set's length, and the share of the image's,
     lying within ``tolerance`` of a parallel segment of the other side. An oriented chamfer
-    test in the normalised frame, on ``per_segment`` points per segment.
+    test in the normalised frame, on ``per_segment`` points per segment (a quarter of a
+    segment is resolution enough to rank views). Parallel means within ``max_angle_deg``,
+    a little wider than the line association's 10 degrees: the aligned view is still a
+    view up to half the graph's spacing away from the true one.
 
     Only a few (model, image) pairs can cover: parallel ones whose bounding boxes lie
     closer than the tolerance (plus a margin far above rounding); distances are measured
@@ -410,6 +410,7 @@ def align(model: SegmentBatch, image: SegmentFeatures, phi: np.ndarray, p: Match
     a, angle, b = similarity.scale, similarity.angle, similarity.shift
     moved = apply_similarity(model.segments, a, angle, b)
     tolerance = p.coverage_tolerance
+    # a wide ICP round brings similarities off by more than the tolerance within reach
     moved, polish = align_to_lines(moved, model.valid, image.segments, (3 * tolerance, tolerance))
     A = polish[:, :, :2] @ (a[:, None, None] * rotations(angle))
     b = np.einsum("jkl,jl->jk", polish[:, :, :2], b) + polish[:, :, 2]

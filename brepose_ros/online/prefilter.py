@@ -12,10 +12,7 @@ bipartite matching for one image region (``matching``), chosen for all views at 
   ``ChamferPrefilter``); the closest (view, rotation) pairs go on to the assignment. The
   map is drawn from the region's Canny edge pixels, not from its line segments: holes,
   fillets and rounded outlines give no segment but do give edge pixels, and the view's
-  chords of those curves then find their counterpart. Measured on bench scenes (24 + 12
-  images per part, seeds 100 and 200): clean successes 111 -> 119 of 144 (the SO-ARM100
-  base attachment, full of holes, 21 -> 28 of 36), clutter 50 -> 59 and 30 % occlusion
-  1 -> 4 of 96.
+  chords of those curves then find their counterpart (docs/DECISIONS.md).
 """
 from __future__ import annotations
 
@@ -24,14 +21,16 @@ import numpy as np
 
 from ..metric_space import segment_lengths
 
-ORIENTATION_BINS = 72  # 2.5 degree bins over [0, pi)
+#: 2.5 degree bins over [0, pi): a candidate rotation is off by at most 1.25 degrees, which
+#: the assignment tolerates and the similarity fit then removes
+ORIENTATION_BINS = 72
 
 
 def orientation_histogram(orient: np.ndarray, lengths: np.ndarray) -> np.ndarray:
     """Length-weighted histogram (ORIENTATION_BINS,) of segment orientations modulo pi, smoothed."""
     bins = (orient / np.pi * ORIENTATION_BINS).astype(int) % ORIENTATION_BINS
     hist = np.bincount(bins, weights=lengths, minlength=ORIENTATION_BINS)
-    kernel = np.array([0.25, 0.5, 1.0, 0.5, 0.25])  # tolerate a few degrees of noise
+    kernel = np.array([0.25, 0.5, 1.0, 0.5, 0.25])  # +-5 degrees: Hough angles scatter by a few
     padded = np.concatenate([hist[-2:], hist, hist[:2]])
     return np.convolve(padded, kernel, mode="valid")
 
@@ -47,9 +46,7 @@ def rotation_candidates(view_spectra: np.ndarray, image_hist: np.ndarray, count:
 
     view_spectra is ``orientation_spectra`` of the (V, B) view histograms: one circular
     cross-correlation per view by one inverse FFT. Each of the ``count`` best peaks
-    (modulo pi) gives two candidates, phi and phi + pi. Returns (V, 2*count). Per region at
-    2,500 views this takes 3.5 ms; with the views' FFT done here and the peaks ranked by a
-    full argsort it took 11 ms, for the same candidates.
+    (modulo pi) gives two candidates, phi and phi + pi. Returns (V, 2*count).
     """
     corr = np.fft.irfft(np.fft.rfft(image_hist)[None, :] * view_spectra, n=ORIENTATION_BINS, axis=1)
     wrapped = np.concatenate([corr[:, -1:], corr, corr[:, :1]], axis=1)
@@ -70,14 +67,27 @@ class ChamferPrefilter:
     (length-weighted). A region's oriented edge points (normalised, e.g. its edge pixels)
     are rasterised once into ``ORIENT_BINS`` distance maps, one per edge direction, over
     the normalised square [-EXTENT, EXTENT]^2. Scoring every (view, rotation) is then a
-    gather over a (V, R, P) index array: a few milliseconds for thousands of views.
+    gather over a (V, R, P) index array, cheap enough for thousands of views.
     """
 
+    #: 30 degree direction bins, no neighbour bins looked up: wide enough that one edge in
+    #: the view and in the image mostly share a bin despite the rotation candidates' steps
+    #: and the views' spacing, narrow enough to keep crossing edges apart
     ORIENT_BINS = 6
-    GRID = 96
+    #: normalised coordinates put the part's outline within about +-1 (unit hull area); the
+    #: square reaches twice that for elongated parts and a region whose centre is off
     EXTENT = 2.0
+    #: cells of 4 / 96 = 0.042 normalised units, about matching.coverage_tolerance (0.04):
+    #: the shortlist needs no finer distances than the ranking after it uses
+    GRID = 96
+    #: a point farther than a quarter of the part's size from any like edge has no
+    #: counterpart; capping its distance keeps a few such points from outweighing the rest
     TRUNCATE = 0.25
+    #: views per block of ``scores``: the (BLOCK, R, P) temporaries stay in the CPU cache
     BLOCK = 256
+    #: the coarse stage scores every 4th point (8 of 32, still spread over the whole view)
+    #: and keeps 16 x shortlist_size pairs for the full score, which then finds the same
+    #: best pairs as scoring all in full (test_prefilter_shortlist_keeps_the_best_pairs_of_the_full_score)
     COARSE_STRIDE = 4
     COARSE_KEEP = 16
 
@@ -110,7 +120,8 @@ class ChamferPrefilter:
 
         Two stages: every pair is scored on every ``COARSE_STRIDE``-th of its points (still
         spread along the whole view), and only the ``COARSE_KEEP`` x ``count`` best go on to
-        the full score. At 10,000 views this is what keeps the pre-filter affordable.
+        the full score: at 10,000 views the full score of every pair would cost most of an
+        image's time.
         """
         coarse = self.scores(maps, phis, slice(None, None, self.COARSE_STRIDE)).ravel()
         keep = min(len(coarse), self.COARSE_KEEP * count)

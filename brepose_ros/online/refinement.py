@@ -40,43 +40,40 @@ from .scoring import CLEAR_SCORE, EdgeEvidence, pose_scores
 
 
 #: association tolerances of the wide rounds that start a hypothesis's refinement, in units
-#: of pose.inlier_pixels; every further round (``pose.refine_iterations`` in all) is at 1
+#: of pose.inlier_pixels, halving: a first pose lands within several pixels of its lines,
+#: and each round's pose is near enough for the next; every further round
+#: (``pose.refine_iterations`` in all) is at the final tolerance 1
 WIDE_ROUNDS = (8.0, 4.0, 2.0)
 #: the rounds of each step of the view climb: a turned pose starts near, so not at the widest
 CLIMB_ROUNDS = (4.0, 2.0)
 #: the round that settles the climb's result at the final tolerance
 SETTLE_ROUNDS = (1.0,)
 
-#: Gauss-Newton steps per round: the wide rounds only need to move the pose near enough for
-#: the next association, so 3 steps do (measured: the refinement stage 35 % faster; clean
-#: success 78 of 96 images before and after on one set, 73 and 71 of 96 on bench/accuracy.py's,
-#: within the noise of single flips); the rounds at the final tolerance converge fully
+#: Gauss-Newton steps per round: a wide round only has to bring the pose near enough for
+#: the next association, so 3 steps do; the rounds at the final tolerance converge fully
 ROUGH_ITERATIONS = 3
 FINE_ITERATIONS = 8
 
-#: the chosen pose is polished on edge pixels (``polish_pose``): rounds of pairing
-#: (3 Gauss-Newton steps each), a point every 3 pixels along the model edges, Huber at 1
-#: pixel (edge pixels sit on the integer grid). Measured refining the true pose of the 24
-#: clean bench images per part, success / median translation error (% of the diameter),
-#: Hough lines only -> then polished: rounded bracket 22 -> 23, 1.6 -> 0.7 %; Base
-#: attachment 21 -> 23, 1.0 -> 1.0 %; Motor1 holder 20 -> 22, 1.2 -> 1.3 %
+#: the polish on edge pixels (``polish_pose``): the line refinement leaves the pose within a
+#: few pixels, which 3 rounds of re-pairing (3 Gauss-Newton steps each) close
 POLISH_ROUNDS = 3
+#: a point every 3 pixels along the model edges: closer points would pair with the same
+#: edge pixels and only weigh that stretch of edge more
 POLISH_SPACING_PIXELS = 3.0
+#: Huber threshold: edge pixels sit on the integer grid, so residuals up to about a pixel
+#: are quantisation, not outliers
 POLISH_HUBER_PIXELS = 1.0
 #: fewer paired edge points than this do not pin a pose (and suggest a pose off the part)
 MIN_POLISH_POINTS = 12
 
-#: weight of a model edge in the polish by kind (sharp, outline, smooth). The silhouette of
-#: a curved face is a soft edge in the image: where image lines meet the rounded bracket's
-#: silhouette at the true pose they lie within +-0.1 px (quartiles) of its sharp edges but
-#: +-0.8 px of its outlines. Measured as above, outline weight 1 / 0.3 / 0.1 / 0: rounded
-#: bracket 23 / 23 / 23 / 24 of 24, median 0.93 / 0.72 / 0.64 / 0.59 %; Base attachment
-#: 22 / 23 / 23 / 23, 1.28 / 0.98 / 0.87 / 0.69 %; but the Motor1 holder, whose edges are
-#: mostly outlines, 22 / 22 / 22 / 16, 1.25 / 1.33 / 1.68 / 3.57 %. Smooth edges (only in
-#: graphs compiled with --smooth) are softer still; they share the outlines' weight, unmeasured.
+#: weight of a model edge in the polish by kind (sharp, outline, smooth): the silhouette of
+#: a curved face is a soft edge, whose image lies about 8 times farther from it than from a
+#: sharp edge; at 0.3 outlines still pin parts made mostly of them (docs/DECISIONS.md).
+#: Smooth edges (graphs compiled with --smooth) share the outlines' weight, unmeasured
 POLISH_KIND_WEIGHTS = np.array([1.0, 0.3, 0.3])
 
-#: refined poses closer than this (rotation, and translation in part diameters) are one pose
+#: refined poses closer than this (rotation, and translation in part diameters) are one
+#: pose: below the graph's view spacing and well below a success's translation bound
 SAME_POSE_DEG = 3.0
 SAME_POSE_DIAMETERS = 0.02
 
@@ -84,7 +81,8 @@ SAME_POSE_DIAMETERS = 0.02
 #: into the same pose differ by 1e-14, and following that noise only costs refinements
 CLIMB_MIN_GAIN = 1e-6
 
-#: graph neighbours tried per step of the view search
+#: graph neighbours tried per step of the view search: on the golden-spiral sphere a view's
+#: 6 to 8 nearest ring it, so every direction around it is tried
 NEIGHBOURS = 8
 
 

@@ -28,10 +28,6 @@ MIN_REGION_SEGMENTS = 4
 #: factor: rounded outlines and corners, which give no segment, bulge out of that hull
 REGION_GROWTH = 1.15
 
-#: segments whose end points lie closer than this share of the image diagonal are one cluster
-CLUSTER_GAP_FRACTION = 0.03
-
-
 @dataclass
 class Region:
     """Image segments of one candidate region, seen by the virtual camera centred on it."""
@@ -45,13 +41,13 @@ class Region:
     distance_maps: np.ndarray  # oriented distance maps of its edge pixels for the chamfer pre-filter
 
 
-def region_groups(frame: Frame, max_regions: int) -> list[np.ndarray]:
+def region_groups(frame: Frame, p: MatchParams) -> list[np.ndarray]:
     """Segment indices of the candidate regions: the whole image, then clusters of
     touching segments (off-centre part among clutter)."""
     groups = [np.arange(len(frame.segments_px))]
     groups += cluster_segments(frame.segments_px,
-                               gap=CLUSTER_GAP_FRACTION * np.hypot(frame.camera.width, frame.camera.height))
-    return [g for g in groups[:max_regions] if len(g) >= MIN_REGION_SEGMENTS]
+                               gap=p.cluster_gap_fraction * np.hypot(frame.camera.width, frame.camera.height))
+    return [g for g in groups[:p.max_regions] if len(g) >= MIN_REGION_SEGMENTS]
 
 
 def normalised_region(indices: np.ndarray, frame: Frame, p: MatchParams) -> Region | None:

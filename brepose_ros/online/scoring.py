@@ -22,21 +22,14 @@ if TYPE_CHECKING:
     from .frame import Frame
 
 #: how far (in units of pose.inlier_pixels) a model edge may lie from an image line and
-#: still count as matched for the error ratio; within 1 unit it is in the nearest group
+#: still count as matched for the error ratio, the pose's residual error and the line
+#: detector's included; within 1 unit it is in the nearest group
 ERROR_RATIO_REACH = 4.0
 
-#: a pose scoring this high is not searched further: it is not climbed, nor is any other
-#: start once a climb reaches it. On the clean bench images no other start has beaten such a
-#: pose (same 73 of 96 successes with and without the second climb). Climbing a start that
-#: already scored this high changed no success on bench/accuracy.py's 288 clean, clutter
-#: and occl30 images. It moved 11 poses, chasing the score's pixel noise (before the polish
-#: on edge pixels by up to 0.7 degrees, 7 of them away from the truth; with the polish, not
-#: climbing changes their rotation errors by at most 0.35 degrees, 5 down and 6 up), and
-#: cost 12-40 ms each: without it the refinement takes 37 instead of 52 ms CPU per image
-#: (median, 2,500-view latency images). Nor are the clusters matched once the whole image
-#: holds such a pose: no final pose changed on the 480 images of bench/accuracy.py (all five
-#: conditions), and on the latency images whose part falls apart into two clusters a third
-#: of the work is saved (69 instead of 114 ms CPU per image, median of all 12)
+#: a pose scoring this high is not searched further (not climbed, no other start climbed
+#: after it, no clusters matched once the whole image holds it): on the bench images no
+#: other start or cluster beat such a pose, and climbing it only chased the score's pixel
+#: noise (docs/DECISIONS.md)
 CLEAR_SCORE = 0.95
 
 
@@ -108,8 +101,7 @@ class EdgeEvidence:
 
     Built from the Canny edge pixels, not from the Hough segments: a faint or curved edge
     that the line detector dropped still has its pixels, and a score counted on pixels
-    separates right from wrong poses far better (on cluttered renders the true pose scored
-    above every wrongly chosen one, where the segment-based score did not).
+    separates right from wrong poses far better (docs/DECISIONS.md).
 
     * ``supports`` (model -> image): share of the projected model edge length within
       ``tolerance`` of an edge pixel of like direction (oriented chamfer: each model point
@@ -120,9 +112,7 @@ class EdgeEvidence:
       projected model edge. The margin, at least ``MIN_MARGIN_PX``, is what stops a small
       pose that fits one inner feature (a window of the part) from explaining everything
       it covers: a relative margin alone grows with the pose, and poses 5x too far away
-      that sat on one hole of the part outscored the true pose on clean images (measured
-      on bench/accuracy.py scenes: with the floor, 78 instead of 74 of 96 clean images
-      succeed, together with 6 hypotheses per region).
+      that sat on one hole of the part outscored the true pose on clean images.
 
     Both run hundreds of times per image and only ask whether a distance is within
     ``tolerance``, so neither computes distances: with OpenCV's 3x3 chamfer distance
@@ -133,7 +123,11 @@ class EdgeEvidence:
     to it, so that a model point needs one look-up.
     """
 
+    #: 22.5 degree direction bins, an edge pixel alike when in the same or a neighbouring
+    #: bin: Sobel directions on a blurred edge scatter by several degrees, and more at corners
     BINS = 8
+    #: the outline grows by a fifth, so that edges just outside a pose that projects a
+    #: little small still count against it
     OUTLINE_MARGIN = 0.2
     MIN_MARGIN_PX = 40.0
 
@@ -169,7 +163,6 @@ class EdgeEvidence:
         if tolerance_px not in self._near_like:
             # one pixel of False around the image: points outside it are clipped onto that
             # border instead of being masked out (a mask costs several array operations)
-            # (filled in place: np.stack, > 0 and np.pad of the 8 maps took 5 of these 6 ms)
             ball = chamfer_ball(tolerance_px)
             near = np.zeros((self.BINS, self.shape[0] + 2, self.shape[1] + 2), np.uint8)
             for b, like in enumerate(self.like_edges):
@@ -178,6 +171,7 @@ class EdgeEvidence:
         h, w = self.shape
         delta = model_px[:, 1] - model_px[:, 0]
         lengths = np.sqrt((delta * delta).sum(axis=1))
+        # a point every 2 pixels, at most 2000 per segment (a pose far too close projects huge)
         counts = np.clip(np.ceil(lengths / 2.0).astype(int), 1, 2000)
         seg_idx, frac = samples_along(counts)
         pts = model_px[:, 0][seg_idx] + frac[:, None] * delta[seg_idx]
@@ -195,8 +189,7 @@ class EdgeEvidence:
         """For points (N, 2) on model edges of direction ``bins`` (N,): the nearest edge
         pixel (N, 2), x and y, and whether it lies within ``radius_px`` and runs alike
         (its direction bin within one of the point's). The distance transform covers only
-        the points' bounding box (about 1.5 ms for a 200 x 200 pixel part, 10 ms for the
-        whole 640 x 480 image)."""
+        the points' bounding box, several times cheaper than the whole image."""
         h, w = self.shape
         pad = int(np.ceil(radius_px)) + 1
         x0, y0 = np.clip(np.floor(points_px.min(axis=0)).astype(int) - pad, 0, [w, h])
@@ -230,6 +223,8 @@ class EdgeEvidence:
         if len(model_px) == 0:
             return 0.0
         h, w = self.shape
+        # a pose far off projects far outside: clipped a few image sizes out, the hull stays
+        # what it covers of the image and its corners fit OpenCV's int32 points
         pts = np.clip(np.asarray(model_px, np.float64).reshape(-1, 2), -4.0 * max(h, w), 5.0 * max(h, w))
         hull = self.grown_outline(pts)
         # work in the outline's bounding box only: a part rarely fills the image
