@@ -62,7 +62,8 @@ def main(argv=None) -> int:
         other_step = part_step(other, cache)
         other_scene = scene(other_step, "clean", args.n, args.seed, cache)
         other_mesh = tessellate(load_step(other_step))
-        for r in evaluate_scene(other_scene, estimator, ModelPoints.from_mesh(other_mesh.vertices, other_mesh.triangles)):
+        other_model = ModelPoints.from_mesh(other_mesh.vertices, other_mesh.triangles)
+        for r in evaluate_scene(other_scene, estimator, other_model):
             scores.append(r.estimate.score)
             correct.append(False)
             positive.append(False)

@@ -100,11 +100,13 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=20, help="runs per stage (default 20)")
     args = parser.parse_args()
 
-    sources = [(path, cv2.imread(path, cv2.IMREAD_UNCHANGED)) for path in args.images] or [("synthetic", synthetic_scene())]
+    sources = ([(path, cv2.imread(path, cv2.IMREAD_UNCHANGED)) for path in args.images]
+               or [("synthetic", synthetic_scene())])
     for name, image in sources:
         if image is None:
             raise SystemExit(f"cannot read image {name}")
-        print(f"\n{name}: {image.shape[1]}x{image.shape[0]}, {image.dtype}, {image.shape[2] if image.ndim == 3 else 1} channel(s)")
+        channels = image.shape[2] if image.ndim == 3 else 1
+        print(f"\n{name}: {image.shape[1]}x{image.shape[0]}, {image.dtype}, {channels} channel(s)")
         print(f"{'stage':40s} {'median ms':>10s} {'min ms':>8s} {'output':>8s}")
         for stage, median, fastest, count in stage_rows(image, args.repeat):
             print(f"{stage:40s} {median:10.2f} {fastest:8.2f} {count if count >= 0 else '':>8}")

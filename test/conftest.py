@@ -1,11 +1,14 @@
-"""Shared fixtures: the bundled sample part and the real data beside the clone."""
+"""Shared fixtures: the bundled sample part and the real data beside the clone.
+
+A test that asks for a STEP file (``builtin_step``, ``sample_step``, ``shared_data``) needs
+the CAD stack and is marked ``cad`` here, so ``pytest -m "not cad and not ros"`` runs the
+maths alone, without importing cadquery.
+"""
 from __future__ import annotations
 
 from pathlib import Path
 
 import pytest
-
-from brepose_ros.synthetic import shapes
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -26,6 +29,8 @@ def builtin_step(tmp_path_factory):
     cache: dict[str, Path] = {}
 
     def make(name: str) -> Path:
+        from brepose_ros.synthetic import shapes  # cadquery: only for the tests that ask
+
         if name not in cache:
             cache[name] = shapes.export_step(name, folder / f"{name}.step")
         return cache[name]
@@ -36,3 +41,12 @@ def builtin_step(tmp_path_factory):
 @pytest.fixture(scope="session")
 def sample_step(builtin_step) -> Path:
     return builtin_step("sample_bracket")
+
+
+CAD_FIXTURES = {"builtin_step", "sample_step", "shared_data"}
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if CAD_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.cad)

@@ -5,12 +5,10 @@ import json
 import struct
 import zipfile
 
-import cadquery as cq
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from brepose_ros.synthetic import shapes
 from brepose_ros.aspect_graph import AspectGraph, AspectGraphError
 from brepose_ros.offline.compiler import compile_aspect_graph
 from brepose_ros.offline.cad import load_step
@@ -98,10 +96,15 @@ def test_cylinder_seen_obliquely_shows_an_ellipse_within_the_chord_tolerance(bui
 @pytest.fixture(scope="module")
 def blind_hole_step(tmp_path_factory):
     """A 60 x 40 x 20 mm block with a 16 mm hole drilled 10 mm deep from its bottom face."""
+    import cadquery as cq
+
+    from brepose_ros.synthetic import shapes
+
     block = cq.Workplane("XY").box(60, 40, 20).faces("<Z").workplane().hole(16, 10)
     return shapes.export_step(block, tmp_path_factory.mktemp("blind") / "blind_hole.step")
 
 
+@pytest.mark.cad
 @pytest.mark.parametrize("method", METHODS)
 def test_hole_behind_a_face_does_not_appear(blind_hole_step, method):
     _, _, top = visible(blind_hole_step, (0.2, 0.3, -1), method)  # looking down at the top
@@ -188,6 +191,7 @@ def test_graph_layout_follows_the_view_coordinate_convention(graph):
         assert np.abs(graph.seg_xy[graph.view_slice(i)]).max() < 10.0  # relative to the view's own unit
 
 
+@pytest.mark.slow
 def test_parallel_compile_gives_the_same_graph(sample_step, graph):
     parallel = compile_aspect_graph(sample_step, step_deg=30.0, workers=2, progress=False)
     for name, array in graph.arrays().items():
@@ -290,6 +294,7 @@ def test_cli_compiles_and_reports_errors_with_status_2(sample_step, tmp_path, ca
 
 # ----------------------------------------------------------------------------- real parts
 
+@pytest.mark.slow
 def test_every_real_part_compiles(shared_data, tmp_path):
     steps = sorted((shared_data / "step").glob("*.st*p"))
     assert len(steps) == 9

@@ -1,11 +1,12 @@
 """The STEP loader refuses every unusable file with a message naming the cause."""
 from __future__ import annotations
 
-import cadquery as cq
 import numpy as np
 import pytest
 
 from brepose_ros.offline.cad import CadError, load_step
+
+pytestmark = pytest.mark.cad
 
 
 def test_builtin_box_is_loaded_in_metres(builtin_step):
@@ -23,6 +24,8 @@ def _truncated(tmp_path, builtin_step):
 
 
 def _surface_only(tmp_path, builtin_step):
+    import cadquery as cq
+
     path = tmp_path / "surface.step"
     cq.exporters.export(cq.Workplane().add(cq.Face.makePlane(10, 10)), str(path), exportType="STEP")
     return path

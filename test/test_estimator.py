@@ -43,6 +43,7 @@ def scene_results(bracket, estimator, tmp_path, config, n=6, seed=3):
     return evaluate_scene(load_scene(tmp_path / "scene"), estimator, bracket[2])
 
 
+@pytest.mark.slow
 def test_clean_images_give_metric_poses(bracket, estimator, tmp_path):
     results = scene_results(bracket, estimator, tmp_path, SceneConfig())
     summary = scene_summary(results)
@@ -57,11 +58,13 @@ def test_clean_images_give_metric_poses(bracket, estimator, tmp_path):
             assert len(r.estimate.model_segments) == len(r.estimate.image_segments) > 3
 
 
+@pytest.mark.slow
 def test_off_centre_part_among_clutter_is_found(bracket, estimator, tmp_path):
     results = scene_results(bracket, estimator, tmp_path, SceneConfig(offcenter=True, clutter=3), seed=5)
     assert scene_summary(results)["success"] >= 3 / 6
 
 
+@pytest.mark.slow
 def test_partly_occluded_part_is_found(bracket, estimator, tmp_path):
     results = scene_results(bracket, estimator, tmp_path, SceneConfig(occlusion=0.3), seed=7)
     assert scene_summary(results)["success"] >= 2 / 6
@@ -89,6 +92,7 @@ def test_bad_images_are_refused_with_a_reason(estimator, image, message):
         estimator.estimate(image, Camera.from_fov(640, 480, 600.0))
 
 
+@pytest.mark.slow
 def test_estimate_command_writes_conventions_predictions(bracket, tmp_path, capsys):
     generate_scene(bracket[0], tmp_path / "scene", 2, seed=11)
     scene = load_scene(tmp_path / "scene")

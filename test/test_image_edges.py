@@ -5,7 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from brepose_ros.online.image_edges import EdgeParams, canny_edges, canny_thresholds, extract_segments, merge_segments, to_gray
+from brepose_ros.online.image_edges import (EdgeParams, canny_edges, canny_thresholds, extract_segments, gradients,
+                                            merge_segments, to_gray)
 
 BACKGROUND = 110.0
 SIZE = (480, 640)
@@ -92,8 +93,7 @@ def test_low_contrast_image_still_finds_every_edge():
 
 
 def _gradient(image):
-    blurred = cv2.GaussianBlur(to_gray(image), (5, 5), 0)
-    return cv2.magnitude(cv2.Sobel(blurred, cv2.CV_32F, 1, 0), cv2.Sobel(blurred, cv2.CV_32F, 0, 1))
+    return cv2.magnitude(*gradients(to_gray(image), EdgeParams()))
 
 
 def test_broken_line_merges_into_one_segment():

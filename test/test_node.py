@@ -36,6 +36,8 @@ from brepose_ros.ros.replay import wait_until
 from brepose_ros.synthetic.scenes import SceneConfig, generate_scene
 from node_helpers import FRAME, TIMEOUT, Harness
 
+pytestmark = pytest.mark.ros
+
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 CAMERA = Camera(200.0, 200.0, 79.5, 59.5, 160, 120)
 R_FAKE = matrix_from_quaternion(np.array([0.1, -0.2, 0.3, 0.9]))

@@ -7,7 +7,7 @@ import pytest
 from brepose_ros.camera import project_normalised
 from brepose_ros.geometry import rot_z, rotation_angle_deg
 from brepose_ros.online import refinement, scoring
-from brepose_ros.online.image_edges import EdgeParams, gradients
+from brepose_ros.online.image_edges import EdgeParams, canny_from_gradients, gradients
 from brepose_ros.online.lines2d import nearest_lines
 
 
@@ -89,15 +89,60 @@ def reference_nearest_lines(model_2d, image_2d, tolerance, max_angle_deg=10.0):
     return np.array(mi, int), np.array(ii, int), np.array(dist)
 
 
-def test_outline_margin_has_a_floor_in_pixels():
-    """A small pose's outline grows by at least MIN_MARGIN_PX, a large one by OUTLINE_MARGIN."""
-    square = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
-    for half in (10.0, 400.0):
-        grown = scoring.EdgeEvidence.grown_outline(300.0 + half * square)
-        radius = half * np.sqrt(2.0)
-        margin = np.linalg.norm(grown[0] - 300.0) - radius
-        expected = max(scoring.EdgeEvidence.OUTLINE_MARGIN * radius, scoring.EdgeEvidence.MIN_MARGIN_PX)
-        assert margin == pytest.approx(expected)
+def test_huber_weights_keep_one_wrong_line_from_pulling_the_pose():
+    """16 exact line matches and one line 30 px (at f = 600) off, refined from the true
+    pose: Huber weights leave the pose within a third of a millimetre, where plain least
+    squares (a threshold nothing exceeds) moves it ten times as far."""
+    rng = np.random.default_rng(5)
+    R, t = cv2.Rodrigues(np.array([0.3, -0.2, 0.1]))[0], np.array([0.0, 0.0, 0.5])
+    model, image = exact_line_matches(rng, 16, R, t)
+    image[0] += [0.0, 0.05]
+    moved = {}
+    for f_scale in (0.002, 1e3):
+        R_f, t_f = refinement.refine_poses(R[None], t[None], model, image, np.array([0, 16]), f_scale=f_scale,
+                                           iterations=20)
+        moved[f_scale] = np.linalg.norm(t_f[0] - t), rotation_angle_deg(R_f[0], R)
+    assert moved[0.002][0] < 0.0005 and moved[0.002][1] < 0.1
+    assert moved[1e3][0] > 0.002 and moved[1e3][1] > 0.3
+
+
+def square(center, side):
+    corners = np.asarray(center, float) + side / 2 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
+    return np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)
+
+
+def test_a_pose_fitting_only_a_hole_does_not_explain_the_part_around_it():
+    """A 60 px window inside a 100 px part: a pose drawing only the window explains its own
+    edges, but the outline's margin of at least MIN_MARGIN_PX takes in the part's outer edges
+    20 px away, which it does not explain; the whole part's pose explains all."""
+    outer, window = square((160, 120), 100), square((160, 120), 60)
+    edge_map = np.zeros((240, 320), np.uint8)
+    for (x0, y0), (x1, y1) in np.concatenate([outer, window]).astype(int):
+        cv2.line(edge_map, (int(x0), int(y0)), (int(x1), int(y1)), 255, 1)
+    flat = np.zeros(edge_map.shape, np.float32)
+    evidence = scoring.EdgeEvidence(edge_map, flat, flat)
+    assert evidence.explained(window, 2.0) < 0.5
+    assert evidence.explained(np.concatenate([outer, window]), 2.0) == 1.0
+
+
+def test_an_edge_pixel_pairs_with_a_model_point_only_if_it_runs_alike():
+    """The polish's pairing (EdgeEvidence.nearest_edges): a point 2 px below a horizontal
+    image edge finds it for a horizontal model edge, not for a vertical one."""
+    gray = np.full((240, 320), 50, np.float32)
+    gray[120:] = 200
+    evidence = scoring.EdgeEvidence(*edge_stage(gray))
+    point = np.array([[200.0, 121.0]])
+    horizontal = evidence.orientation_bin(np.array([[[0.0, 0.0], [1.0, 0.0]]]))
+    vertical = evidence.orientation_bin(np.array([[[0.0, 0.0], [0.0, 1.0]]]))
+    edge, found = evidence.nearest_edges(point, horizontal, radius_px=2.0)
+    assert found.tolist() == [True] and edge.tolist() == [[200.0, 119.0]]
+    assert evidence.nearest_edges(point, vertical, radius_px=2.0)[1].tolist() == [False]
+
+
+def edge_stage(gray):
+    """Canny's edge map and the gradient it ran on, at the default edge parameters."""
+    dx, dy = gradients(gray, EdgeParams())
+    return canny_from_gradients(dx, dy, EdgeParams()), dx, dy
 
 
 def test_nearest_lines_matches_the_pairwise_definition():

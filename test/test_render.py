@@ -1,8 +1,6 @@
 """The renderer's ground truth is exact: silhouettes, depth and visibility."""
 from __future__ import annotations
 
-import time
-
 import cv2
 import numpy as np
 import pytest
@@ -99,17 +97,3 @@ def test_colour_rendering_over_a_background_image():
 def test_objects_behind_the_camera_are_not_drawn():
     rendering = render(CAMERA, [Placed(box_mesh(0.05, 0.05, 0.05), np.eye(3), np.array([0, 0, -0.4]))])
     assert not rendering.mask.any() and np.isinf(rendering.depth).all()
-
-
-def test_a_few_thousand_triangles_render_well_under_a_second(builtin_step):
-    loaded = load_step(builtin_step("rounded_bracket"))
-    mesh = tessellate(loaded, relative_deflection=2e-4, angular_deflection=0.1)
-    assert len(mesh.triangles) > 2000
-    R = look_at_rotation(np.array([-0.4, 0.6, -0.7]))
-    objects = [Placed(mesh, R, np.array([0, 0, 0.25]) - R @ loaded.center)]
-    timings = []
-    for _ in range(3):
-        started = time.perf_counter()
-        render(CAMERA, objects)
-        timings.append(time.perf_counter() - started)
-    assert min(timings) < 0.5, timings

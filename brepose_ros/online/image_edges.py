@@ -29,7 +29,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from ..params import DETECTORS, EdgeParams
+from ..params import EdgeParams
 
 #: median / scale of a Rayleigh distribution: the gradient magnitude of pure Gaussian noise
 _RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))

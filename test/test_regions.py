@@ -1,0 +1,70 @@
+"""Candidate regions and the views are normalised alike, by their outline; segment clusters."""
+import numpy as np
+import pytest
+
+from brepose_ros.aspect_graph import AspectGraph
+from brepose_ros.camera import Camera
+from brepose_ros.online.frame import Frame
+from brepose_ros.online.hypotheses import ViewLibrary
+from brepose_ros.online.regions import cluster_segments, normalised_region
+from brepose_ros.online.scoring import EdgeEvidence
+from brepose_ros.params import MatchParams
+
+CAMERA = Camera.from_fov(640, 480, 600.0)
+
+
+def square(center, side):
+    """The four sides (4, 2, 2) of an axis-aligned square."""
+    corners = np.asarray(center, float) + side / 2 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
+    return np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)
+
+
+#: an inner edge off the centre: it moves a length-weighted centroid, not the outline's
+INNER = np.array([[[30.0, 10.0], [30.0, 60.0]]])
+
+
+def frame_of(segments_px):
+    """A frame of these segments, without edge pixels."""
+    empty = np.zeros((CAMERA.height, CAMERA.width), np.float32)
+    return Frame(segments_px=segments_px, segments_n=CAMERA.undistort(segments_px), camera=CAMERA,
+                 evidence=EdgeEvidence(empty.astype(np.uint8), empty, empty), edge_points_n=np.zeros((0, 2)))
+
+
+def test_a_region_is_normalised_by_its_outline_whatever_its_inner_edges():
+    outline = square((CAMERA.cx, CAMERA.cy), 180.0)
+    with_inner = np.concatenate([outline, INNER + [CAMERA.cx, CAMERA.cy]])
+    regions = [normalised_region(np.arange(len(s)), frame_of(s), MatchParams()) for s in (outline, with_inner)]
+    for region in regions:
+        assert region.scale == pytest.approx(180.0 / 600.0)  # the square root of the outline's area
+        assert np.allclose(region.center, 0.0, atol=1e-12)
+    assert np.array_equal(regions[0].features.segments, regions[1].features.segments[:4])
+
+
+def one_view_graph(xy_metres):
+    """An aspect graph of one view whose sections have these view coordinates."""
+    n = len(xy_metres)
+    return AspectGraph(step_sha256="", params={}, model_center=np.zeros(3), model_diameter=1.0, n_faces=1,
+                       view_directions=np.array([[0.0, 0.0, 1.0]]), view_rotations=np.eye(3)[None],
+                       seg_offsets=np.array([0, n]), seg_xy=np.asarray(xy_metres, np.float32),
+                       xy_origin=np.zeros((1, 2)), xy_scale=np.ones(1),
+                       seg_3d=np.zeros((n, 2, 3)), seg_kind=np.zeros(n, np.uint8))
+
+
+def test_a_view_is_normalised_by_its_outline_whatever_its_inner_edges():
+    outline = square((0.02, -0.01), 0.04)
+    library = ViewLibrary(one_view_graph(np.concatenate([outline, INNER * 2e-4 + [0.02, -0.01]])), max_segments=60)
+    norm = library.normalisation[0]
+    assert norm.scale == pytest.approx(0.04, rel=1e-6)
+    assert np.allclose(norm.center, [0.02, -0.01], atol=1e-8)
+
+
+def test_clusters_are_chains_of_close_end_points_largest_first():
+    big, small = square((100.0, 100.0), 120.0), square((400.0, 300.0), 60.0)
+    speck = np.array([[[600.0, 50.0], [600.0, 58.0]]])  # under a tenth of the largest cluster's length
+    segments = np.concatenate([small, speck, big])
+    clusters = cluster_segments(segments, gap=5.0)
+    assert [sorted(c.tolist()) for c in clusters] == [[5, 6, 7, 8], [0, 1, 2, 3]]
+    assert cluster_segments(big, gap=5.0) == []  # one cluster is the whole image again
+    apart = big.copy()
+    apart[2] += [0.0, 6.0]  # the top side moved away by more than the gap: two clusters
+    assert len(cluster_segments(apart, gap=5.0)) == 2
