@@ -32,7 +32,6 @@ REGION_GROWTH = 1.15
 class Region:
     """Image segments of one candidate region, seen by the virtual camera centred on it."""
 
-    indices: np.ndarray  # into the image's segments
     R_align: np.ndarray
     center: np.ndarray  # normalisation in virtual normalised coordinates
     scale: float
@@ -65,7 +64,7 @@ def normalised_region(indices: np.ndarray, frame: Frame, p: MatchParams) -> Regi
     features = matching.describe(norm.apply(virtual))
     around = edge_pixels_around(frame, frame.segments_px[indices])
     pixels = norm.apply(to_virtual(frame.edge_points_n[around], R_align))
-    return Region(indices=indices, R_align=R_align, center=norm.center, scale=norm.scale, features=features,
+    return Region(R_align=R_align, center=norm.center, scale=norm.scale, features=features,
                   orientation_histogram=orientation_histogram(features.orientations, features.lengths),
                   distance_maps=ChamferPrefilter.distance_maps(pixels, frame.evidence.directions[around]))
 
