@@ -13,14 +13,27 @@ from typing import Any
 
 import yaml
 
-
-
 DETECTORS = ("hough", "lsd")
 
 
-def doc(text: str, default: Any) -> Any:
-    """A dataclass field with its default and its documentation in ``metadata["doc"]``."""
-    return field(default=default, metadata={"doc": text})
+def doc(text: str, default: Any, low: float | None = None, high: float | None = None) -> Any:
+    """A dataclass field with its default, its documentation in ``metadata["doc"]`` and, for
+    numbers, its closed range ``[low, high]`` in ``metadata["range"]`` (the ROS node puts it
+    in the parameter's descriptor; ``check_ranges`` refuses values outside it)."""
+    metadata = {"doc": text}
+    if low is not None:
+        metadata["range"] = (low, high)
+    return field(default=default, metadata=metadata)
+
+
+def check_ranges(instance) -> None:
+    """ValueError naming the first field of a params dataclass outside its range (or NaN)."""
+    for f in dataclasses.fields(instance):
+        if "range" not in f.metadata:
+            continue
+        value, (low, high) = getattr(instance, f.name), f.metadata["range"]
+        if not low <= value <= high:  # also refuses NaN
+            raise ValueError(f"{f.name} must be in [{low:g}, {high:g}], got {value}")
 
 
 @dataclass(frozen=True)
@@ -28,79 +41,75 @@ class EdgeParams:
     """Every threshold of the image edge stage; lengths in pixels unless named ``*_fraction``."""
 
     detector: str = doc("'hough' (Canny + HoughLinesP, the paper's method) or 'lsd' (OpenCV LSD)", "hough")
-    blur_size: int = doc("odd Gaussian kernel size before edge detection; 1 disables the blur", 5)
-    blur_sigma: float = doc("Gaussian sigma, pixels; 0 derives it from blur_size", 0.0)
-    canny_noise_factor: float = doc("Canny high threshold in units of the gradient noise level (median gradient / 1.18)", 5.0)
-    canny_low_ratio: float = doc("Canny low threshold as a share of the high one", 0.4)
-    canny_min_high: float = doc("floor of the Canny high threshold (Sobel magnitude of a 0..255 image) for noise-free images", 6.0)
-    hough_rho: float = doc("HoughLinesP distance resolution, pixels", 1.0)
-    hough_theta_deg: float = doc("HoughLinesP angle resolution, degrees", 1.0)
-    hough_vote_ratio: float = doc("HoughLinesP accumulator threshold as a share of the minimum line length", 0.5)
+    blur_size: int = doc("odd Gaussian kernel size before edge detection; 1 disables the blur", 5, 1, 31)
+    blur_sigma: float = doc("Gaussian sigma, pixels; 0 derives it from blur_size", 0.0, 0.0, 20.0)
+    canny_noise_factor: float = doc("Canny high threshold in units of the gradient noise level (median gradient / 1.18)", 5.0, 0.1, 100.0)
+    canny_low_ratio: float = doc("Canny low threshold as a share of the high one", 0.4, 0.01, 1.0)
+    canny_min_high: float = doc("floor of the Canny high threshold (Sobel magnitude of a 0..255 image) for noise-free images", 6.0, 0.1, 1000.0)
+    hough_rho: float = doc("HoughLinesP distance resolution, pixels", 1.0, 0.5, 10.0)
+    hough_theta_deg: float = doc("HoughLinesP angle resolution, degrees", 1.0, 0.1, 10.0)
+    hough_vote_ratio: float = doc("HoughLinesP accumulator threshold as a share of the minimum line length", 0.5, 0.01, 10.0)
     raw_min_length_fraction: float = doc(
         "shortest raw segment before merging (HoughLinesP minLineLength; shorter LSD pieces are dropped), "
-        "share of the image diagonal", 0.015)
-    hough_max_gap: float = doc("largest gap HoughLinesP bridges inside one segment, pixels", 3.0)
-    merge_angle_deg: float = doc("pieces of one edge differ in direction by at most this, degrees", 2.0)
-    merge_distance: float = doc("both end points of a piece lie this close to the edge's fitted line, pixels", 2.0)
-    merge_gap: float = doc("largest gap along the line between pieces of one edge, pixels", 15.0)
+        "share of the image diagonal", 0.015, 0.0, 1.0)
+    hough_max_gap: float = doc("largest gap HoughLinesP bridges inside one segment, pixels", 3.0, 0.0, 100.0)
+    merge_angle_deg: float = doc("pieces of one edge differ in direction by at most this, degrees", 2.0, 0.1, 45.0)
+    merge_distance: float = doc("both end points of a piece lie this close to the edge's fitted line, pixels", 2.0, 0.0, 50.0)
+    merge_gap: float = doc("largest gap along the line between pieces of one edge, pixels", 15.0, 0.0, 500.0)
     refine: bool = doc("refit each merged Hough segment to the Canny pixels along it and extend it over them", True)
-    min_length_fraction: float = doc("merged segments shorter than this share of the image diagonal are dropped", 0.03)
-    max_segments: int = doc("at most this many merged segments are kept, longest first", 200)
+    min_length_fraction: float = doc("merged segments shorter than this share of the image diagonal are dropped", 0.03, 0.0, 1.0)
+    max_segments: int = doc("at most this many merged segments are kept, longest first", 200, 1, 2000)
 
     def __post_init__(self):
         if self.detector not in DETECTORS:
             raise ValueError(f"detector must be one of {DETECTORS}, got {self.detector!r}")
-        if self.blur_size < 1 or self.blur_size % 2 == 0:
+        check_ranges(self)
+        if self.blur_size % 2 == 0:
             raise ValueError(f"blur_size must be a positive odd integer, got {self.blur_size}")
-        positive = ("canny_noise_factor", "canny_min_high", "hough_rho", "hough_theta_deg",
-                    "hough_vote_ratio", "merge_angle_deg", "max_segments")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if not 0 < self.canny_low_ratio <= 1:
-            raise ValueError(f"canny_low_ratio must be in (0, 1], got {self.canny_low_ratio}")
-        non_negative = ("blur_sigma", "raw_min_length_fraction", "hough_max_gap",
-                        "merge_distance", "merge_gap", "min_length_fraction")
-        for name in non_negative:
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
 class MatchParams:
     """Tetrad metric space and bipartite matching (seed paper sections 3 and 6)."""
 
-    weight_length: float = doc("weight of the length difference in the tetrad distance", 1.0)
-    weight_midpoint: float = doc("weight of the midpoint difference (length and angle of the midpoint)", 1.0)
-    weight_orientation: float = doc("weight of the orientation difference (angle of the perpendicular), radians", 0.5)
-    weight_perpendicular: float = doc("weight of the perpendicular foot-point difference (length and angle of the perpendicular)", 0.5)
-    empty_coefficient: float = doc("distance of an empty element, as a share of the largest pair distance; pairs farther than twice this are left unmatched", 0.25)
-    nearest_threshold: float = doc("pairs closer than this share of the empty distance form the nearest group", 0.5)
-    shortlist_size: int = doc("(view, rotation) pairs per region kept by the chamfer pre-filter for Kuhn-Munkres", 48)
-    rotation_candidates: int = doc("peaks of the orientation correlation tried per view, each also turned by 180 degrees", 2)
-    coverage_tolerance: float = doc("distance (normalised units) within which aligned edges cover each other when ranking views", 0.04)
-    max_model_segments: int = doc("longest view segments used in matching", 60)
-    max_image_segments: int = doc("longest image segments used in matching per region", 90)
-    max_regions: int = doc("candidate image regions (whole image, edge clusters) matched per image", 6)
+    weight_length: float = doc("weight of the length difference in the tetrad distance", 1.0, 0.0, 100.0)
+    weight_midpoint: float = doc("weight of the midpoint difference (length and angle of the midpoint)", 1.0, 0.0, 100.0)
+    weight_orientation: float = doc("weight of the orientation difference (angle of the perpendicular), radians", 0.5, 0.0, 100.0)
+    weight_perpendicular: float = doc("weight of the perpendicular foot-point difference (length and angle of the perpendicular)", 0.5, 0.0, 100.0)
+    empty_coefficient: float = doc("distance of an empty element, as a share of the largest pair distance; pairs farther than twice this are left unmatched", 0.25, 0.001, 10.0)
+    nearest_threshold: float = doc("pairs closer than this share of the empty distance form the nearest group", 0.5, 0.0, 1.0)
+    shortlist_size: int = doc("(view, rotation) pairs per region kept by the chamfer pre-filter for Kuhn-Munkres", 48, 1, 256)
+    rotation_candidates: int = doc("peaks of the orientation correlation tried per view, each also turned by 180 degrees", 2, 1, 16)
+    coverage_tolerance: float = doc("distance (normalised units) within which aligned edges cover each other when ranking views", 0.04, 0.001, 1.0)
+    max_model_segments: int = doc("longest view segments used in matching", 60, 4, 200)
+    max_image_segments: int = doc("longest image segments used in matching per region", 90, 4, 300)
+    max_regions: int = doc("candidate image regions (whole image, edge clusters) matched per image", 6, 1, 32)
     cluster_gap_fraction: float = doc(
         "segments whose end points lie closer than this share of the image diagonal chain into one cluster "
         "(a candidate region); as long as the shortest segment kept (edges.min_length_fraction), so that the "
-        "edges of one part meeting at its corners chain, while objects apart by more stay apart", 0.03)
-    hypotheses: int = doc("best-covered (view, rotation) hypotheses per region turned into poses and verified", 6)
-    workers: int = doc("worker threads that split each region's batch of (view, rotation) jobs; 1 by default: the batched steps are short and mostly hold the GIL, and 2 threads measured no faster (bench/latency.py)", 1)
+        "edges of one part meeting at its corners chain, while objects apart by more stay apart", 0.03, 0.0, 0.5)
+    hypotheses: int = doc("best-covered (view, rotation) hypotheses per region turned into poses and verified", 6, 1, 64)
+    workers: int = doc("worker threads that split each region's batch of (view, rotation) jobs; 1 by default: the batched steps are short and mostly hold the GIL, and 2 threads measured no faster (bench/latency.py)", 1, 1, 16)
+
+    def __post_init__(self):
+        check_ranges(self)
 
 
 @dataclass(frozen=True)
 class PoseParams:
     """Metric pose, refinement and the found / not-found decision."""
 
-    refine_iterations: int = doc("re-match and refine rounds of every hypothesis; 0 keeps the first pose from the view", 6)
-    climb_candidates: int = doc("best-scoring refined hypotheses that go on to the search over neighbouring views", 2)
-    view_search_steps: int = doc("steps of the hill-climb over neighbouring aspect-graph views; 0 turns it off", 4)
-    inlier_pixels: float = doc("distance of a projected model edge to an image edge still counted as found, pixels", 2.0)
-    min_size_pixels: float = doc("smallest diagonal of the projected part, pixels; smaller poses score 0", 40.0)
-    min_score: float = doc("a pose with a lower score is reported as not found", 0.6)
-    warn_error_ratio: float = doc("diagnostics turn WARN above this error ratio", 0.5)
+    # refine_iterations stops at 6: the estimator's refinement schedule has 6 rounds
+    refine_iterations: int = doc("re-match and refine rounds of every hypothesis; 0 keeps the first pose from the view", 6, 0, 6)
+    climb_candidates: int = doc("best-scoring refined hypotheses that go on to the search over neighbouring views", 2, 1, 16)
+    view_search_steps: int = doc("steps of the hill-climb over neighbouring aspect-graph views; 0 turns it off", 4, 0, 50)
+    inlier_pixels: float = doc("distance of a projected model edge to an image edge still counted as found, pixels", 2.0, 0.1, 50.0)
+    min_size_pixels: float = doc("smallest diagonal of the projected part, pixels; smaller poses score 0", 40.0, 0.0, 10000.0)
+    min_score: float = doc("a pose with a lower score is reported as not found", 0.6, 0.0, 1.0)
+    warn_error_ratio: float = doc("diagnostics turn WARN above this error ratio", 0.5, 0.0, 1.0)
+
+    def __post_init__(self):
+        check_ranges(self)
 
 
 @dataclass(frozen=True)
@@ -115,6 +124,9 @@ class EstimatorParams:
     @classmethod
     def from_dict(cls, data: dict | None) -> "EstimatorParams":
         """Nested dict (as in the YAML file) to params; unknown keys are an error, not ignored."""
+        if data is not None and not isinstance(data, dict):
+            raise ValueError(f"parameters must be a mapping of groups ({', '.join(cls().to_dict())}), "
+                             f"got {type(data).__name__}")
         data = dict(data or {})
         groups = {f.name: f.type for f in dataclasses.fields(cls)}
         unknown = set(data) - set(groups)
@@ -135,9 +147,14 @@ class EstimatorParams:
             data = yaml.safe_load(Path(path).read_text())
         except FileNotFoundError:
             raise ValueError(f"parameter file {path} does not exist") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"cannot read parameter file {path}: {exc}") from None
         except yaml.YAMLError as exc:
-            raise ValueError(f"parameter file {path} is not valid YAML: {exc}") from None
-        return cls.from_dict(data)
+            raise ValueError(f"parameter file {path} is not valid YAML: {one_line(exc)}") from None
+        try:
+            return cls.from_dict(data)
+        except ValueError as exc:
+            raise ValueError(f"parameter file {path}: {exc}") from None
 
     def flat(self) -> dict[str, Any]:
         """``{"matching.empty_coefficient": 0.25, ...}``: the names of the ROS parameters."""
@@ -156,7 +173,10 @@ class EstimatorParams:
 
 
 def replace_checked(instance, overrides: dict, group: str):
-    """dataclasses.replace with unknown names refused and values cast to the field's type."""
+    """dataclasses.replace with unknown names refused and each value checked against the
+    field's type and then its range. An int is a float too, and so is a string that reads as
+    one (PyYAML takes ``1e-3`` for a string, ROS parameter files for a number); nothing else
+    is converted: ``"2"`` or ``2.5`` for an int, or ``"on"`` for a bool, is refused, not guessed."""
     fields = {f.name: f for f in dataclasses.fields(instance)}
     unknown = set(overrides) - set(fields)
     if unknown:
@@ -164,11 +184,30 @@ def replace_checked(instance, overrides: dict, group: str):
     cast = {}
     for name, value in overrides.items():
         kind = type(getattr(instance, name))
-        try:
-            cast[name] = kind(value) if kind in (int, float, bool, str) else value
-        except (TypeError, ValueError):
-            raise ValueError(f"{group}.{name} must be {kind.__name__}, got {value!r}") from None
-    return dataclasses.replace(instance, **cast)
+        if kind is float and isinstance(value, (int, str)) and not isinstance(value, bool):
+            try:
+                value = float(value)
+            except ValueError:
+                pass
+        if type(value) is not kind:
+            raise ValueError(f"{group}.{name} must be {kind.__name__}, got {value!r}")
+        cast[name] = value
+    try:
+        return dataclasses.replace(instance, **cast)
+    except ValueError as exc:
+        raise ValueError(f"{group}.{exc}") from None
+
+
+def one_line(exc: Exception) -> str:
+    """An exception's message on one line (YAML errors span several)."""
+    return " ".join(str(exc).split())
+
+
+def field_ranges() -> dict[str, tuple[float, float]]:
+    """Closed range of every flat parameter name that has one."""
+    return {f"{group.name}.{f.name}": f.metadata["range"]
+            for group in dataclasses.fields(EstimatorParams)
+            for f in dataclasses.fields(getattr(EstimatorParams(), group.name)) if "range" in f.metadata}
 
 
 def field_docs() -> dict[str, str]:
