@@ -15,25 +15,45 @@ from pathlib import Path
 from ..aspect_graph import default_path
 from ..offline.compiler import DEFAULT_STEP_DEG, compile_aspect_graph
 from ..offline.hidden_lines import DEFAULT_CHORD_TOLERANCE, DEFAULT_METHOD, DEFAULT_MIN_LENGTH, METHODS
-from .common import run
+from .common import ArgumentParser, non_negative_float, positive_float, positive_int, run
+
+#: the finest view spacing accepted: 1 degree is already about 37,000 views (a 5-degree graph
+#: has 1,505); finer spacings only burn hours and memory
+MIN_STEP_DEG = 1.0
+#: the densest longitude/latitude grid accepted, K (K - 1) + 2 = 39,802 views
+MAX_LONLAT = 200
+
+
+def step_deg(text: str) -> float:
+    value = positive_float(text)
+    if not MIN_STEP_DEG <= value <= 90:
+        raise argparse.ArgumentTypeError(f"must be in [{MIN_STEP_DEG:g}, 90] degrees, got {text}")
+    return value
+
+
+def lonlat(text: str) -> int:
+    value = positive_int(text)
+    if not 2 <= value <= MAX_LONLAT:
+        raise argparse.ArgumentTypeError(f"must be in [2, {MAX_LONLAT}], got {text}")
+    return value
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="brepose-compile", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="brepose-compile", description=__doc__.splitlines()[0])
     p.add_argument("step", type=Path, help="STEP file of the part (any unit; stored in metres)")
     p.add_argument("-o", "--output", type=Path, help="output file (default: ./MODEL.brepose.npz)")
     views = p.add_mutually_exclusive_group()
-    views.add_argument("--step-deg", type=float, default=DEFAULT_STEP_DEG,
+    views.add_argument("--step-deg", type=step_deg, default=DEFAULT_STEP_DEG,
                        help=f"angle between neighbouring views on a golden-spiral sphere (default {DEFAULT_STEP_DEG})")
-    views.add_argument("--lonlat", type=int, metavar="K",
+    views.add_argument("--lonlat", type=lonlat, metavar="K",
                        help="the seed paper's longitude/latitude grid of density K instead")
-    p.add_argument("--workers", type=int, help="processes (default: one per CPU)")
+    p.add_argument("--workers", type=positive_int, help="processes (default: one per CPU)")
     p.add_argument("--smooth", action="store_true", help="also keep smooth tangent seams (Rg1 lines)")
     p.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD,
                    help=f"hidden-line removal on the B-Rep (exact) or its mesh (poly); default {DEFAULT_METHOD}")
-    p.add_argument("--chord-tolerance", type=float, default=DEFAULT_CHORD_TOLERANCE,
+    p.add_argument("--chord-tolerance", type=positive_float, default=DEFAULT_CHORD_TOLERANCE,
                    help=f"largest 2D error of a line section, fraction of the diameter (default {DEFAULT_CHORD_TOLERANCE})")
-    p.add_argument("--min-length", type=float, default=DEFAULT_MIN_LENGTH,
+    p.add_argument("--min-length", type=non_negative_float, default=DEFAULT_MIN_LENGTH,
                    help=f"shortest kept section, fraction of the diameter (default {DEFAULT_MIN_LENGTH})")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return p

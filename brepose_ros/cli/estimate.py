@@ -1,21 +1,19 @@
 """brepose-estimate: find the part in images, write the predictions JSON of CONVENTIONS.md."""
 from __future__ import annotations
 
-import argparse
 import sys
-
-import cv2
 
 from ..aspect_graph import AspectGraph
 from ..camera import Camera
 from ..online.estimator import Estimator
 from ..evaluation.metrics import prediction_entry, write_predictions
+from ..image_codec import read_image_file
 from ..params import EstimatorParams
-from .common import run
+from .common import ArgumentParser, run
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(prog="brepose-estimate", description=__doc__)
+    parser = ArgumentParser(prog="brepose-estimate", description=__doc__)
     parser.add_argument("images", nargs="+", help="image files (8-bit grey or BGR)")
     parser.add_argument("--graph", required=True, help="compiled aspect graph (.brepose.npz)")
     parser.add_argument("--camera", required=True, help="camera.json with the intrinsics")
@@ -25,16 +23,15 @@ def parse_args(argv=None):
 
 
 def main(argv=None) -> int:
+    args = parse_args(argv)
+
     def job():
-        args = parse_args(argv)
         params = EstimatorParams.load(args.params) if args.params else EstimatorParams()
         estimator = Estimator(AspectGraph.load(args.graph), params)
         camera = Camera.load(args.camera)
         predictions = []
         for path in args.images:
-            image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-            if image is None:
-                raise ValueError(f"cannot read image {path}")
+            image = read_image_file(path)
             estimate = estimator.estimate(image, camera)
             predictions.append(prediction_entry(path, estimate))
             state = f"score {estimate.score:.2f}" if estimate.found else "not found"

@@ -1,7 +1,6 @@
 """brepose-eval: run the estimator over a scene folder and report CONVENTIONS.md metrics."""
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -16,22 +15,23 @@ from ..evaluation.metrics import (ModelPoints, evaluate_scene, format_summary, p
 from ..evaluation.overlay import draw_overlay
 from ..params import EstimatorParams
 from ..scene_folder import load_scene
-from .common import run
+from .common import ArgumentParser, non_negative_int, run
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(prog="brepose-eval", description=__doc__)
+    parser = ArgumentParser(prog="brepose-eval", description=__doc__)
     parser.add_argument("scene", help="scene folder (camera.json, model.step, images/, gt.json)")
     parser.add_argument("--graph", required=True, help="compiled aspect graph of the scene's part")
     parser.add_argument("--params", help="estimator YAML (config/estimator.yaml layout)")
     parser.add_argument("--out", help="folder for predictions.json, metrics.json, plots and overlays")
-    parser.add_argument("--overlays", type=int, default=6, help="overlay images to write (default 6)")
+    parser.add_argument("--overlays", type=non_negative_int, default=6, help="overlay images to write (default 6)")
     return parser.parse_args(argv)
 
 
 def main(argv=None) -> int:
+    args = parse_args(argv)
+
     def job():
-        args = parse_args(argv)
         scene = load_scene(args.scene)
         graph = AspectGraph.load(args.graph)
         params = EstimatorParams.load(args.params) if args.params else EstimatorParams()

@@ -18,31 +18,31 @@ import numpy as np
 
 from ..synthetic import shapes
 from ..synthetic.scenes import SceneConfig, generate_scene
-from .common import run
+from .common import ArgumentParser, non_negative_float, non_negative_int, positive_float, positive_int, run
 
 BUILTIN_PREFIX = "builtin:"
 
 
 def parser() -> argparse.ArgumentParser:
     d = SceneConfig()
-    p = argparse.ArgumentParser(prog="brepose-render", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="brepose-render", description=__doc__.splitlines()[0])
     p.add_argument("model", help=f"STEP file, or {BUILTIN_PREFIX}NAME of a built-in part "
                                  f"({', '.join(shapes.BUILTIN)})")
     p.add_argument("outdir", type=Path, help="new (or empty) scene folder")
-    p.add_argument("--n", type=int, default=10, help="number of images (default 10)")
-    p.add_argument("--seed", type=int, default=0, help="random seed; image i depends on (seed, i) only")
-    p.add_argument("--occlusion", type=float, default=d.occlusion,
+    p.add_argument("--n", type=positive_int, default=10, help="number of images (default 10)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="random seed; image i depends on (seed, i) only")
+    p.add_argument("--occlusion", type=non_negative_float, default=d.occlusion,
                    help="share of the part to hide behind an occluder, 0-0.5 (default 0)")
-    p.add_argument("--clutter", type=int, default=d.clutter, help="shapes behind the part (default 0)")
-    p.add_argument("--noise", type=float, default=d.noise, help=f"noise sigma, grey levels (default {d.noise})")
-    p.add_argument("--blur", type=float, default=d.blur, help=f"blur sigma, pixels (default {d.blur})")
+    p.add_argument("--clutter", type=non_negative_int, default=d.clutter, help="shapes behind the part (default 0)")
+    p.add_argument("--noise", type=non_negative_float, default=d.noise, help=f"noise sigma, grey levels (default {d.noise})")
+    p.add_argument("--blur", type=non_negative_float, default=d.blur, help=f"blur sigma, pixels (default {d.blur})")
     p.add_argument("--offcenter", action="store_true", help="part anywhere in the central 80 %% of the image")
-    p.add_argument("--width", type=int, default=d.width)
-    p.add_argument("--height", type=int, default=d.height)
-    p.add_argument("--fx", type=float, default=d.fx, help=f"focal length in pixels, fx = fy (default {d.fx})")
-    p.add_argument("--span-min", type=float, default=d.span[0],
+    p.add_argument("--width", type=positive_int, default=d.width)
+    p.add_argument("--height", type=positive_int, default=d.height)
+    p.add_argument("--fx", type=positive_float, default=d.fx, help=f"focal length in pixels, fx = fy (default {d.fx})")
+    p.add_argument("--span-min", type=positive_float, default=d.span[0],
                    help=f"smallest part size, share of the image's smaller side (default {d.span[0]})")
-    p.add_argument("--span-max", type=float, default=d.span[1], help=f"largest part size (default {d.span[1]})")
+    p.add_argument("--span-max", type=positive_float, default=d.span[1], help=f"largest part size (default {d.span[1]})")
     p.add_argument("--elevation", type=float, nargs=2, metavar=("LO", "HI"),
                    help="viewpoints only this many degrees above the model XY plane (default: whole sphere)")
     p.add_argument("--color", action="store_true", help="BGR images instead of grey")

@@ -1,9 +1,12 @@
 """rosbag2 files of camera images, written and read with rosbags (no rosbag2_py wheel exists).
 
-Writing turns a scene folder into what a camera driver records: sensor_msgs/Image plus a
-CameraInfo with the same header (frame ``camera_optical_frame``, identical stamps) at a
-fixed rate. Reading accepts any rosbag2 (or ROS 1 bag) with Image topics and pairs every
-image with the CameraInfo of the same stamp, so the estimator can run on recorded data.
+Writing turns a scene folder into what a camera driver records: sensor_msgs/Image (or, with
+``compression``, sensor_msgs/CompressedImage PNG or JPEG on ``<topic>/compressed``, as
+image_transport records it) plus a CameraInfo with the same header (frame
+``camera_optical_frame``, identical stamps) at a fixed rate. Reading accepts any rosbag2 (or
+ROS 1 bag) with Image or CompressedImage topics and pairs every image with the CameraInfo of
+the same stamp, so the estimator can run on recorded data. Every image is bounded in pixels
+before it is decoded (``image_codec``).
 """
 from __future__ import annotations
 
@@ -12,17 +15,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
 
-import cv2
 import numpy as np
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
 from ..camera import Camera, CameraError
-from ..image_codec import camera_from_info, decode_image, encode_image
+from ..image_codec import (MAX_IMAGE_PIXELS, camera_from_info, decode_compressed, decode_image, encode_compressed,
+                           encode_image, read_image_file)
 from ..scene_folder import load_scene
 
 IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
+COMPRESSIONS = ("png", "jpeg")
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 FRAME_ID = "camera_optical_frame"
 #: First stamp of a written bag (2024-01-01T00:00:00Z): fixed, so bags are reproducible.
@@ -43,36 +49,50 @@ class Frame:
     frame_id: str
     image: np.ndarray
     camera: Camera | None
+    #: (format, bytes) of a CompressedImage as recorded, to replay it unchanged
+    compressed: tuple[str, bytes] | None = None
 
 
 def write_bag(bag: str | Path, images: Iterable[np.ndarray], camera: Camera, *,
               storage: str = "mcap", topic: str = "/camera/image_raw",
               info_topic: str = "/camera/camera_info", rate: float = 10.0,
-              frame_id: str = FRAME_ID, start_ns: int = START_NS) -> int:
-    """Write images (grey or BGR arrays) and one CameraInfo per image; returns the count."""
+              frame_id: str = FRAME_ID, start_ns: int = START_NS, compression: str | None = None) -> int:
+    """Write images (grey or BGR arrays) and one CameraInfo per image; returns the count.
+
+    ``compression`` ``png`` or ``jpeg`` writes CompressedImage messages on
+    ``<topic>/compressed`` instead of Image messages on ``topic``.
+    """
     if storage not in STORAGES:
         raise BagError(f"unknown storage {storage!r}; choose {' or '.join(STORAGES)}")
-    if not rate > 0:
-        raise BagError(f"rate must be positive, got {rate}")
+    if compression not in (None, *COMPRESSIONS):
+        raise BagError(f"unknown compression {compression!r}; choose {' or '.join(COMPRESSIONS)}")
+    if not 0 < rate <= 1e6:  # also refuses NaN; a million frames per second is no camera
+        raise BagError(f"rate must be in (0, 1e6] frames per second, got {rate}")
     store = get_typestore(Stores.ROS2_KILTED)
     types = store.types
     count = 0
     try:
         with Writer(bag, version=9, storage_plugin=STORAGES[storage]) as writer:
-            image_conn = writer.add_connection(topic, IMAGE, typestore=store)
+            msgtype = COMPRESSED_IMAGE if compression else IMAGE
+            image_conn = writer.add_connection(topic + ("/compressed" if compression else ""), msgtype,
+                                               typestore=store)
             info_conn = writer.add_connection(info_topic, CAMERA_INFO, typestore=store)
             for count, image in enumerate(images, start=1):
                 stamp = start_ns + round((count - 1) * 1e9 / rate)
                 header = types["std_msgs/msg/Header"](
                     stamp=types["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9),
                     frame_id=frame_id)
-                encoding, step, data = encode_image(image)
-                msg = types[IMAGE](header=header, height=image.shape[0], width=image.shape[1],
-                                   encoding=encoding, is_bigendian=0, step=step,
-                                   data=np.frombuffer(data, dtype=np.uint8))
+                if compression:
+                    fmt, data = encode_compressed(image, compression)
+                    msg = types[COMPRESSED_IMAGE](header=header, format=fmt, data=np.frombuffer(data, np.uint8))
+                else:
+                    encoding, step, data = encode_image(image)
+                    msg = types[IMAGE](header=header, height=image.shape[0], width=image.shape[1],
+                                       encoding=encoding, is_bigendian=0, step=step,
+                                       data=np.frombuffer(data, dtype=np.uint8))
                 info = _camera_info(types, camera, header)
                 writer.write(info_conn, stamp, store.serialize_cdr(info, CAMERA_INFO))
-                writer.write(image_conn, stamp, store.serialize_cdr(msg, IMAGE))
+                writer.write(image_conn, stamp, store.serialize_cdr(msg, msgtype))
     except (WriterError, ValueError) as exc:
         raise BagError(f"cannot write bag {bag}: {exc}") from None
     return count
@@ -96,21 +116,22 @@ def write_scene_bag(scene: str | Path, bag: str | Path, **options) -> int:
 
     def images():
         for entry in loaded.entries:
-            image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
-            if image is None:
-                raise BagError(f"cannot read image {entry.path}")
-            yield image
+            try:
+                yield read_image_file(entry.path)
+            except ValueError as exc:
+                raise BagError(str(exc)) from None
 
     return write_bag(bag, images(), loaded.camera, **options)
 
 
-def read_bag(bag: str | Path, topic: str | None = None,
-             info_topic: str | None = None) -> Iterator[Frame]:
-    """Frames of an Image topic in recording order, each with its camera.
+def read_bag(bag: str | Path, topic: str | None = None, info_topic: str | None = None,
+             max_pixels: int = MAX_IMAGE_PIXELS) -> Iterator[Frame]:
+    """Frames of an Image or CompressedImage topic in recording order, each with its camera.
 
-    ``topic`` defaults to the bag's only Image topic; ``info_topic`` to the CameraInfo
-    topic beside it (same namespace), else the bag's only one. A frame gets the camera
-    of the CameraInfo with its stamp, else of the latest one before it, else the first.
+    ``topic`` defaults to the bag's only image topic; ``info_topic`` to the CameraInfo
+    topic beside it (same namespace; for ``.../image_raw/compressed`` beside
+    ``.../image_raw``), else the bag's only one. A frame gets the camera of the CameraInfo
+    with its stamp, else of the latest one before it, else the first.
     """
     path = Path(bag)
     try:
@@ -121,13 +142,18 @@ def read_bag(bag: str | Path, topic: str | None = None,
             for index, (conn, _, raw) in enumerate(reader.messages(connections=image_conns)):
                 msg = reader.deserialize(raw, conn.msgtype)
                 stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+                compressed = None
                 try:
-                    image = decode_image(msg.encoding, msg.height, msg.width, msg.step, msg.data,
-                                         bool(msg.is_bigendian))
+                    if conn.msgtype == COMPRESSED_IMAGE:
+                        compressed = (msg.format, bytes(msg.data))
+                        image = decode_compressed(compressed[1], max_pixels)
+                    else:
+                        image = decode_image(msg.encoding, msg.height, msg.width, msg.step, msg.data,
+                                             bool(msg.is_bigendian), max_pixels)
                 except ValueError as exc:
                     raise BagError(f"{path}: image {index} on {conn.topic}: {exc}") from None
-                yield Frame(stamp, msg.header.frame_id, image, _camera_at(cameras, stamps, stamp))
-    except (AnyReaderError, FileNotFoundError, CameraError) as exc:
+                yield Frame(stamp, msg.header.frame_id, image, _camera_at(cameras, stamps, stamp), compressed)
+    except (AnyReaderError, OSError, CameraError) as exc:
         raise BagError(f"cannot read bag {path}: {exc}") from None
     except BagError:
         raise
@@ -140,11 +166,11 @@ def _select(reader: AnyReader, path: Path, topic: str | None, info_topic: str | 
     by_type: dict[str, set[str]] = {}
     for conn in reader.connections:
         by_type.setdefault(conn.msgtype, set()).add(conn.topic)
-    images = sorted(by_type.get(IMAGE, ()))
+    images = sorted(set().union(*(by_type.get(t, set()) for t in IMAGE_TYPES)))
     infos = sorted(by_type.get(CAMERA_INFO, ()))
     if not images:
         found = ", ".join(f"{c.topic} ({c.msgtype})" for c in reader.connections) or "nothing"
-        raise BagError(f"{path} has no {IMAGE} topic (found: {found})")
+        raise BagError(f"{path} has no {IMAGE} or {COMPRESSED_IMAGE} topic (found: {found})")
     if topic is None:
         if len(images) > 1:
             raise BagError(f"{path} has several image topics ({', '.join(images)}); choose one")
@@ -152,7 +178,7 @@ def _select(reader: AnyReader, path: Path, topic: str | None, info_topic: str | 
     elif topic not in images:
         raise BagError(f"{path} has no image topic {topic} (image topics: {', '.join(images)})")
     if info_topic is None:
-        beside = topic.rsplit("/", 1)[0] + "/camera_info"
+        beside = topic.removesuffix("/compressed").rsplit("/", 1)[0] + "/camera_info"
         info_topic = beside if beside in infos else (infos[0] if len(infos) == 1 else None)
     elif info_topic not in infos:
         raise BagError(f"{path} has no CameraInfo topic {info_topic} "

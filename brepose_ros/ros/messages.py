@@ -13,24 +13,33 @@ import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from ..camera import Camera
 from ..geometry import matrix_from_quaternion, quaternion_from_matrix
-from ..image_codec import decode_image, encode_image
+from ..image_codec import MAX_IMAGE_PIXELS, decode_compressed, decode_image, encode_compressed, encode_image
 
-#: the node's input QoS: sensor data (best effort, volatile) with depth 1, so the DDS reader
-#: itself keeps only the newest frame; best effort also matches reliable publishers
-LATEST_ONLY = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                         reliability=ReliabilityPolicy.BEST_EFFORT)
-#: what cameras (and our players) publish with
+
+def latest_only(reliability: ReliabilityPolicy) -> QoSProfile:
+    """Depth 1, keep last: the DDS reader itself keeps only the newest frame, never a backlog."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=reliability)
+
+
+#: the node's input QoS before the publishers are known (``BEST_AVAILABLE``: the node follows
+#: what its publishers offer, see ``node.InputSubscription``)
+LATEST_ONLY = latest_only(ReliabilityPolicy.BEST_AVAILABLE)
+#: what cameras publish with (best effort); our players also offer reliable
 SENSOR_QOS = qos_profile_sensor_data
+RELIABLE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE)
+PUBLISHER_QOS = {"best_effort": SENSOR_QOS, "reliable": RELIABLE_QOS}
 DIAGNOSTICS_TOPIC = "/diagnostics"
+#: image_transport's name for the compressed images of a base topic
+COMPRESSED_SUFFIX = "/compressed"
 
 
 def stamp_ns(stamp: Time) -> int:
@@ -42,9 +51,20 @@ def stamp_from_ns(ns: int) -> Time:
     return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
 
 
-def image_from_msg(msg: Image) -> np.ndarray:
-    """Pixels of an Image message; ValueError (from image_codec) names what is wrong."""
-    return decode_image(msg.encoding, msg.height, msg.width, msg.step, msg.data, bool(msg.is_bigendian))
+def image_from_msg(msg: Image | CompressedImage, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarray:
+    """Pixels of an Image or CompressedImage (PNG or JPEG) message, at most ``max_pixels``
+    of them; ValueError (from image_codec) names what is wrong."""
+    if isinstance(msg, CompressedImage):
+        if "compresseddepth" in msg.format.lower():
+            raise ValueError(f"CompressedImage format {msg.format!r} (depth images) is not supported")
+        return decode_compressed(msg.data, max_pixels)
+    return decode_image(msg.encoding, msg.height, msg.width, msg.step, msg.data, bool(msg.is_bigendian),
+                        max_pixels)
+
+
+def compressed_image_msg(image: np.ndarray, header: Header, kind: str = "png") -> CompressedImage:
+    fmt, data = encode_compressed(image, kind)
+    return CompressedImage(header=header, format=fmt, data=data)
 
 
 def image_msg(image: np.ndarray, header: Header) -> Image:
@@ -70,6 +90,17 @@ def pose_msg(R: np.ndarray, t: np.ndarray, header: Header) -> PoseStamped:
     q = quaternion_from_matrix(R)
     o = msg.pose.orientation
     o.x, o.y, o.z, o.w = (float(v) for v in q)
+    return msg
+
+
+def pose_with_covariance_msg(R: np.ndarray, t: np.ndarray, covariance: np.ndarray | None,
+                             header: Header) -> PoseWithCovarianceStamped:
+    """The pose with its 6x6 covariance (x, y, z, then rotations about x, y, z: REP 103 order);
+    an unknown covariance is written as all -1, which no real covariance can be."""
+    msg = PoseWithCovarianceStamped(header=header)
+    msg.pose.pose = pose_msg(R, t, header).pose
+    msg.pose.covariance = (np.full(36, -1.0) if covariance is None
+                           else np.asarray(covariance, dtype=float).reshape(36)).tolist()
     return msg
 
 

@@ -1,21 +1,28 @@
-"""The rclpy adapter: images in, PoseStamped + diagnostics + a debug overlay out.
+"""The rclpy adapter: images in, poses + diagnostics + a debug overlay out (docs/ros.md).
 
 Topics (node name ``estimator``; relative names can be remapped with ``--ros-args -r``):
 
-- in  ``image_raw`` (sensor_msgs/Image; mono8, mono16, bgr8, rgb8, bgra8, rgba8) and
-  ``camera_info`` (sensor_msgs/CameraInfo), both sensor-data QoS with depth 1;
-- out ``~/pose`` (geometry_msgs/PoseStamped, only when the part is found) and
+- in  ``image_raw`` (sensor_msgs/Image; mono8, mono16, bgr8, rgb8, bgra8, rgba8, the 8- and
+  16-bit Bayer patterns, yuv422/uyvy and yuv422_yuy2/yuyv) or, with ``image_transport`` =
+  ``compressed``, ``image_raw/compressed`` (sensor_msgs/CompressedImage, PNG or JPEG), and
+  ``camera_info`` (sensor_msgs/CameraInfo). Both are depth 1, keep last; their reliability
+  follows the publishers (:class:`InputSubscription`) unless a parameter file sets
+  ``qos_overrides./image_raw.subscription.reliability`` (rclpy's QoSOverridingOptions);
+- out ``~/pose`` (geometry_msgs/PoseStamped) and ``~/pose_with_covariance``
+  (geometry_msgs/PoseWithCovarianceStamped), only when the part is found, and
   ``~/debug_image`` (sensor_msgs/Image bgr8, only while someone subscribes); with more than
-  one part these become ``~/<part>/pose`` and ``~/<part>/debug_image``;
+  one part these become ``~/<part>/pose`` etc.;
 - out ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): one array per image, header copied
   from the image, one status named ``estimator: <part>`` per part. Levels: OK = found with
   error ratio <= ``pose.warn_error_ratio``; WARN = not found (score below
   ``pose.min_score``) or error ratio above it; ERROR = the image or the intrinsics could not
-  be used, or the estimator raised. Values: found, score, error_ratio, view_index,
-  image_edges, matched_pairs, nearest_pairs, estimator_ms, latency_ms (receipt to answer),
-  frames_skipped (frames received but replaced by a newer one before the worker got to them;
-  frames the depth-1 DDS reader dropped itself are not seen), and the estimator's own stage
-  timings as ``<stage>_ms``.
+  be used, or the estimator raised (also logged). Values: found, score, error_ratio,
+  view_index, image_edges, matched_pairs, nearest_pairs, estimator_ms, latency_ms (receipt
+  to answer), frames_skipped (frames received but replaced by a newer one before the worker
+  got to them), frames_lost (samples the DDS reader reported lost), input_hz, and the
+  estimator's own stage timings as ``<stage>_ms``. Besides, a status ``estimator: input``
+  once a second while no image arrives (WARN, with the publishers seen) or while frames are
+  being lost (WARN, with the count and the remedy).
 
 Threads: the subscription callbacks only store the newest frame; one worker thread runs the
 estimator on it, so a slow image never builds a backlog. The executor threads
@@ -24,15 +31,17 @@ estimator spreads the views of one image over its own ``matching.workers`` threa
 ``messages.make_executor`` builds the executor with a work-around for a busy loop of rclpy
 9.1's MultiThreadedExecutor.
 
-Parameters: ``graphs``, ``part_names``, ``fx``/``fy``/``cx``/``cy``, ``executor_threads``,
-``debug_image`` (see :data:`NODE_PARAMETERS`) and every estimator parameter under its
-``params.EstimatorParams.flat()`` name (``matching.empty_coefficient``...). Estimator
-parameters and the intrinsics can be changed at run time and apply from the next image.
+Parameters: :data:`NODE_PARAMETERS` and every estimator parameter under its
+``params.EstimatorParams.flat()`` name (``matching.empty_coefficient``...), each with its
+range in the descriptor. Every value is checked at start (a bad one stops the start with the
+reason) and at run time (a bad change is refused with the reason). Estimator parameters,
+the intrinsics and ``input_is_rectified`` can change at run time; the worker hands new
+estimator parameters over between two images, never during one.
 """
 from __future__ import annotations
 
 import argparse
-import math
+import collections
 import re
 import sys
 import threading
@@ -46,38 +55,72 @@ import numpy as np
 import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import CameraInfo, Image
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from ..aspect_graph import SUFFIX as GRAPH_SUFFIX
 from ..aspect_graph import AspectGraph
 from ..camera import Camera, CameraError
-from ..online.estimator import Estimate, Estimator
 from ..evaluation.overlay import draw_overlay
-from ..params import EstimatorParams, field_docs
-from ..image_codec import camera_from_info
-from .messages import (DIAGNOSTICS_TOPIC, LATEST_ONLY, diagnostic_status, image_from_msg, image_msg,
-                     make_executor, pose_msg)
+from ..image_codec import MAX_IMAGE_PIXELS, camera_from_info
+from ..online.estimator import Estimate, Estimator
+from ..params import EstimatorParams, field_docs, field_ranges, one_line
+from .messages import (COMPRESSED_SUFFIX, DIAGNOSTICS_TOPIC, LATEST_ONLY, diagnostic_status, image_from_msg,
+                       image_msg, latest_only, make_executor, pose_msg, pose_with_covariance_msg)
 
 NODE_NAME = "estimator"
 INTRINSICS = ("fx", "fy", "cx", "cy")
+TRANSPORTS = ("raw", "compressed")
 #: seconds an image waits for the first CameraInfo when there are no fallback intrinsics
 CAMERA_INFO_GRACE = 0.2
-#: name -> (default, description, read_only); graphs and part names cannot change while running
-NODE_PARAMETERS: dict[str, tuple[Any, str, bool]] = {
-    "graphs": (Parameter.Type.STRING_ARRAY, "paths of precompiled aspect graphs (brepose-compile), one per part", True),
-    "part_names": (Parameter.Type.STRING_ARRAY, "name of each graph's part, used in topics and diagnostics; "
-                   "empty: the graph file names without .brepose.npz", True),
-    "fx": (0.0, "fallback focal length x, pixels, used until a CameraInfo arrives; 0 = no fallback", False),
-    "fy": (0.0, "fallback focal length y, pixels; 0 = no fallback", False),
-    "cx": (0.0, "fallback principal point x, pixels; 0 = no fallback", False),
-    "cy": (0.0, "fallback principal point y, pixels; 0 = no fallback", False),
-    "executor_threads": (2, "threads of the MultiThreadedExecutor started by main()", True),
-    "debug_image": (True, "publish the overlay image while ~/debug_image has subscribers", False),
+#: the input status is published this often while no image arrives or frames are lost, s
+HEARTBEAT_PERIOD = 1.0
+#: how often the input subscriptions compare their reliability with their publishers', s: a
+#: publisher that appears is followed within this time
+QOS_CHECK_PERIOD = 0.25
+#: input_hz counts the frames received in this window, s
+RATE_WINDOW = 2.0
+#: an ERROR log line per cause at most this often, s: a camera sending bad frames at 30 Hz
+#: must not flood the log (diagnostics still carry every one)
+LOG_THROTTLE = 5.0
+#: largest focal length or principal point accepted as fallback intrinsics, pixels
+MAX_INTRINSIC = 1e6
+
+
+@dataclass(frozen=True)
+class NodeParameter:
+    default: Any
+    description: str
+    read_only: bool = False
+    range: tuple[float, float] | None = None
+
+
+#: the node's own parameters; graphs, part names, threads and the transport cannot change
+#: while running
+NODE_PARAMETERS: dict[str, NodeParameter] = {
+    "graphs": NodeParameter(Parameter.Type.STRING_ARRAY, "paths of precompiled aspect graphs (brepose-compile), "
+                            "one per part", True),
+    "part_names": NodeParameter(Parameter.Type.STRING_ARRAY, "name of each graph's part, used in topics and "
+                                "diagnostics; empty: the graph file names without .brepose.npz", True),
+    **{name: NodeParameter(0.0, f"fallback {what}, pixels, used until a CameraInfo arrives; 0 = no fallback",
+                           range=(0.0, MAX_INTRINSIC))
+       for name, what in zip(INTRINSICS, ("focal length x", "focal length y", "principal point x",
+                                          "principal point y"))},
+    "executor_threads": NodeParameter(2, "threads of the MultiThreadedExecutor started by main()", True, (1, 16)),
+    "debug_image": NodeParameter(True, "publish the overlay image while ~/debug_image has subscribers"),
+    "image_transport": NodeParameter("raw", "'raw': sensor_msgs/Image on image_raw; 'compressed': "
+                                     "sensor_msgs/CompressedImage (PNG, JPEG) on image_raw/compressed", True),
+    "input_is_rectified": NodeParameter(False, "the images are rectified (image_proc's image_rect): use the "
+                                        "CameraInfo's P and no distortion instead of K and D"),
+    "max_image_pixels": NodeParameter(MAX_IMAGE_PIXELS, "images with more pixels are refused before decoding",
+                                      range=(1, 1 << 28)),
 }
 
 
@@ -119,6 +162,88 @@ class NewestFrame:
             self._cond.notify_all()
 
 
+class InputSubscription:
+    """A depth-1 input subscription whose reliability follows its publishers.
+
+    The profile is rclpy's QoSOverridingOptions default, so a parameter file can set every
+    policy (``qos_overrides./image_raw.subscription.reliability: reliable``...). Left at
+    ``best_available`` the subscription is re-created as the publishers require, as
+    rosbag2's recorder does: reliable while every publisher is reliable (large frames then
+    survive the trip between processes, docs/ros.md), best effort as soon as one publisher is
+    best effort (a reliable reader does not match it), best effort before any publisher is
+    seen. The new subscription is created before the old one is destroyed, so no frame falls
+    in between. ``lost`` counts the samples the DDS reader reported lost.
+    """
+
+    def __init__(self, node: Node, msg_type, topic: str, callback: Callable):
+        self.node, self.msg_type, self.topic, self.callback = node, msg_type, topic, callback
+        self.lost = 0
+        self._lock = threading.Lock()
+        profile = latest_only(ReliabilityPolicy.BEST_AVAILABLE)
+        # the first subscription declares the qos_overrides parameters and applies them to
+        # ``profile``; it is replaced at once when they leave reliability to the publishers
+        self.subscription = self._create(profile, QoSOverridingOptions.with_default_policies())
+        self.profile = profile
+        self.follows_publishers = profile.reliability == ReliabilityPolicy.BEST_AVAILABLE
+        self.reliability = profile.reliability
+        if self.follows_publishers:
+            self.update()
+
+    def _create(self, profile: QoSProfile, overriding: QoSOverridingOptions | None = None):
+        events = SubscriptionEventCallbacks(message_lost=self._on_lost)
+        return self.node.create_subscription(self.msg_type, self.topic, self.callback, profile,
+                                             qos_overriding_options=overriding, event_callbacks=events)
+
+    def _on_lost(self, info) -> None:
+        self.lost += info.total_count_change
+
+    def wanted(self) -> ReliabilityPolicy:
+        offered = [p.qos_profile.reliability for p in self.node.get_publishers_info_by_topic(self.topic)]
+        if offered and all(r == ReliabilityPolicy.RELIABLE for r in offered):
+            return ReliabilityPolicy.RELIABLE
+        return ReliabilityPolicy.BEST_EFFORT
+
+    def update(self) -> None:
+        """Re-create the subscription if the publishers now want another reliability."""
+        if not self.follows_publishers:
+            return
+        with self._lock:
+            wanted = self.wanted()
+            if wanted == self.reliability:
+                return
+            profile = QoSProfile(history=self.profile.history, depth=self.profile.depth, reliability=wanted,
+                                 durability=self.profile.durability)
+            old, self.subscription = self.subscription, self._create(profile)
+            self.node.destroy_subscription(old)
+            first, self.reliability = self.reliability == ReliabilityPolicy.BEST_AVAILABLE, wanted
+        if not first:
+            self.node.get_logger().info(f"{self.topic}: subscription now {wanted.name.lower()}, as its publishers offer")
+
+    @property
+    def reliability_name(self) -> str:
+        return self.reliability.name.lower()
+
+
+class FrameRate:
+    """Frames received per second over the last ``RATE_WINDOW`` seconds."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._arrivals: collections.deque[float] = collections.deque()
+        self.last = None
+
+    def add(self, now: float) -> None:
+        with self._lock:
+            self._arrivals.append(now)
+            self.last = now
+            while now - self._arrivals[0] > RATE_WINDOW:
+                self._arrivals.popleft()
+
+    def hz(self, now: float) -> float:
+        with self._lock:
+            return sum(now - t <= RATE_WINDOW for t in self._arrivals) / RATE_WINDOW
+
+
 @dataclass
 class Part:
     """One part the node looks for: its estimator and its output topics."""
@@ -127,6 +252,7 @@ class Part:
     status_name: str
     estimator: Any
     pose_pub: Any
+    pose_covariance_pub: Any
     debug_pub: Any
 
 
@@ -150,6 +276,18 @@ def estimate_values(estimate: Estimate) -> dict[str, Any]:
     return values
 
 
+def parameter_descriptor(description: str, read_only: bool, value_range) -> ParameterDescriptor:
+    descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    if value_range is not None:
+        low, high = value_range
+        if isinstance(low, int) and isinstance(high, int):
+            descriptor.integer_range = [IntegerRange(from_value=low, to_value=high, step=1)]
+        else:
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high),
+                                                                  step=0.0)]
+    return descriptor
+
+
 class EstimatorNode(Node):
     """Loads the parts' aspect graphs once, then answers every image (see module docstring).
 
@@ -164,17 +302,31 @@ class EstimatorNode(Node):
         try:
             self._declare_parameters()
             self.params = self._estimator_params()
+            transport = self.get_parameter("image_transport").value
+            if transport not in TRANSPORTS:
+                raise StartupError(f"image_transport must be one of {', '.join(TRANSPORTS)}, got {transport!r}")
             self.parts = self._load_parts(estimator_factory, graph_loader)
         except StartupError:
             self.destroy_node()
             raise
-        self.camera_info: Camera | None = None
-        self.camera_info_error = ""
+        self.camera_info: CameraInfo | None = None
         self._camera_info_arrived = threading.Event()
         self.frames = NewestFrame()
+        self.rate = FrameRate()
+        self._logged: dict[str, float] = {}
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
-        self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, LATEST_ONLY)
-        self.create_subscription(Image, "image_raw", self._on_image, LATEST_ONLY)
+        self.camera_info_input = InputSubscription(self, CameraInfo, self.resolve_topic_name("camera_info"),
+                                                   self._on_camera_info)
+        image_topic = self.resolve_topic_name("image_raw")
+        if transport == "compressed":
+            self.image_input = InputSubscription(self, CompressedImage, image_topic + COMPRESSED_SUFFIX,
+                                                 self._on_image)
+        else:
+            self.image_input = InputSubscription(self, Image, image_topic, self._on_image)
+        self._lost_reported = 0
+        self._started = time.perf_counter()
+        self.create_timer(QOS_CHECK_PERIOD, self._follow_publishers)
+        self.create_timer(HEARTBEAT_PERIOD, self._heartbeat)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         self._worker = threading.Thread(target=self._work, name="estimator-worker", daemon=True)
@@ -183,15 +335,16 @@ class EstimatorNode(Node):
     # -- start-up ---------------------------------------------------------------------------
 
     def _declare_parameters(self) -> None:
-        docs = field_docs()
-        declarations = [(name, default, description, read_only)
-                        for name, (default, description, read_only) in NODE_PARAMETERS.items()]
-        declarations += [(name, value, docs[name], False) for name, value in EstimatorParams().flat().items()]
-        for name, default, description, read_only in declarations:
+        docs, ranges = field_docs(), field_ranges()
+        declarations = [(name, p.default, p.description, p.read_only, p.range)
+                        for name, p in NODE_PARAMETERS.items()]
+        declarations += [(name, value, docs[name], False, ranges.get(name))
+                         for name, value in EstimatorParams().flat().items()]
+        for name, default, description, read_only, value_range in declarations:
             try:
-                self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=read_only))
+                self.declare_parameter(name, default, parameter_descriptor(description, read_only, value_range))
             except Exception as exc:  # rclpy raises several types for a bad override value
-                raise StartupError(f"parameter {name}: {exc}") from None
+                raise StartupError(f"parameter {name}: {one_line(exc)}") from None
 
     def _estimator_params(self) -> EstimatorParams:
         names = EstimatorParams().flat()
@@ -232,51 +385,90 @@ class EstimatorNode(Node):
             prefix = "~" if len(graphs) == 1 else f"~/{name}"
             parts.append(Part(name, f"{self.get_name()}: {name}", estimator_factory(graph, self.params),
                               self.create_publisher(PoseStamped, f"{prefix}/pose", 10),
+                              self.create_publisher(PoseWithCovarianceStamped, f"{prefix}/pose_with_covariance", 10),
                               self.create_publisher(Image, f"{prefix}/debug_image", 1)))
         return parts
 
     # -- parameters at run time -------------------------------------------------------------
 
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        """Refuse a change that EstimatorParams (or the intrinsics check) would not accept."""
+        """Refuse a change that EstimatorParams would not accept (rclpy has checked types,
+        ranges and read-only already), with its reason."""
         flat = EstimatorParams().flat()
         try:
             self.params.with_flat({p.name: p.value for p in parameters if p.name in flat})
         except ValueError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        for p in parameters:
-            if p.name in INTRINSICS and not (math.isfinite(p.value) and p.value >= 0):
-                return SetParametersResult(successful=False, reason=f"{p.name} must be finite and >= 0, got {p.value}")
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
-        """Hand the new thresholds to every estimator; they take effect from the next image."""
+        """Keep the new estimator parameters for the worker, which hands them to the
+        estimators before its next image (a change must not reach an image in flight)."""
         flat = EstimatorParams().flat()
         updates = {p.name: p.value for p in parameters if p.name in flat}
         if updates:
             self.params = self.params.with_flat(updates)
-            for part in self.parts:
-                part.estimator.params = self.params
-            self.get_logger().info(f"estimator parameters changed: {updates}")
+            self.get_logger().info(f"estimator parameters changed, from the next image on: {updates}")
 
     # -- callbacks: store only --------------------------------------------------------------
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
-        try:
-            self.camera_info, self.camera_info_error = camera_from_info(msg), ""
-        except CameraError as exc:
-            self.camera_info, self.camera_info_error = None, str(exc)
+        self.camera_info = msg
         self._camera_info_arrived.set()
 
-    def _on_image(self, msg: Image) -> None:
-        self.frames.put((msg, time.perf_counter()))
+    def _on_image(self, msg: Image | CompressedImage) -> None:
+        now = time.perf_counter()
+        self.rate.add(now)
+        self.frames.put((msg, now))
+
+    def _follow_publishers(self) -> None:
+        self.image_input.update()
+        self.camera_info_input.update()
+
+    def _heartbeat(self) -> None:
+        """The input status, while no image arrives or while frames are being lost."""
+        now = time.perf_counter()
+        lost = self.image_input.lost - self._lost_reported
+        self._lost_reported = self.image_input.lost
+        silent_since = self.rate.last if self.rate.last is not None else self._started
+        if lost == 0 and now - silent_since < HEARTBEAT_PERIOD:
+            return
+        topic = self.image_input.topic
+        publishers = self.count_publishers(topic)
+        values = {"publishers": publishers, "reliability": self.image_input.reliability_name,
+                  "input_hz": self.rate.hz(now), "frames_lost": self.image_input.lost,
+                  "seconds_without_image": now - silent_since}
+        if lost:
+            message = (f"{lost} frames lost on {topic} in the last {HEARTBEAT_PERIOD:g} s: large best-effort "
+                       "images between processes need a reliable publisher or the shared-memory settings "
+                       "of docs/ros.md")
+            self._log_error("lost", message)
+        elif self.rate.last is None:
+            message = f"no image received on {topic} yet ({publishers} publishers)"
+        else:
+            message = f"no image on {topic} for {now - silent_since:.0f} s ({publishers} publishers)"
+        status = diagnostic_status(f"{self.get_name()}: input", DiagnosticStatus.WARN, message, "", values)
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics_pub.publish(array)
+
+    def _log_error(self, cause: str, message: str) -> None:
+        """An ERROR log line, at most one per cause every LOG_THROTTLE seconds."""
+        now = time.monotonic()
+        if now - self._logged.get(cause, -LOG_THROTTLE) >= LOG_THROTTLE:
+            self._logged[cause] = now
+            self.get_logger().error(message)
 
     # -- the worker -------------------------------------------------------------------------
 
     def _work(self) -> None:
         while (item := self.frames.take()) is not None:
+            params = self.params
+            for part in self.parts:
+                if part.estimator.params is not params:
+                    part.estimator.params = params
             try:
-                self.process(*item)
+                self.process(*item, params)
             except Exception:  # e.g. a publish failing: log it, the next image may work
                 self.get_logger().error(f"answering an image failed:\n{traceback.format_exc()}")
 
@@ -290,34 +482,42 @@ class EstimatorNode(Node):
         fallback = min(fx, fy, cx, cy) > 0
         if self.camera_info is None and not fallback:
             self._camera_info_arrived.wait(CAMERA_INFO_GRACE)
-        camera = self.camera_info
+        info, refused = self.camera_info, ""
+        camera = None
+        if info is not None:
+            try:
+                camera = camera_from_info(info, self.get_parameter("input_is_rectified").value)
+            except CameraError as exc:
+                refused = f" (the last one was refused: {exc})"
         if camera is None:
             if not fallback:
-                refused = f" (the last one was refused: {self.camera_info_error})" if self.camera_info_error else ""
-                raise BadInput(f"no CameraInfo received on {self.resolve_topic_name('camera_info')}{refused} "
+                raise BadInput(f"no CameraInfo received on {self.camera_info_input.topic}{refused} "
                                "and no fallback intrinsics (parameters fx, fy, cx, cy)")
             return Camera(fx, fy, cx, cy, width, height)
         if (camera.width, camera.height) != (width, height):
             raise BadInput(f"CameraInfo is for {camera.width}x{camera.height} images but the image is {width}x{height}")
         return camera
 
-    def process(self, msg: Image, received: float) -> None:
+    def process(self, msg: Image | CompressedImage, received: float, params: EstimatorParams | None = None) -> None:
         """Answer one image: a pose per found part and always one diagnostics array."""
+        params = params or self.params
         statuses = []
         try:
             try:
-                image = image_from_msg(msg)
+                image = image_from_msg(msg, self.get_parameter("max_image_pixels").value)
             except ValueError as exc:
                 raise BadInput(f"bad image: {exc}") from None
             camera = self.camera_for(*image.shape[:2])
         except BadInput as exc:
+            self._log_error("input", str(exc))
             for part in self.parts:
                 statuses.append(self._status(part, msg, DiagnosticStatus.ERROR, str(exc), {}, received))
         else:
-            statuses = [self._estimate(part, msg, image, camera, received) for part in self.parts]
+            statuses = [self._estimate(part, msg, image, camera, received, params) for part in self.parts]
         self.diagnostics_pub.publish(DiagnosticArray(header=msg.header, status=statuses))
 
-    def _estimate(self, part: Part, msg: Image, image: np.ndarray, camera: Camera, received: float) -> DiagnosticStatus:
+    def _estimate(self, part: Part, msg, image: np.ndarray, camera: Camera, received: float,
+                  params: EstimatorParams) -> DiagnosticStatus:
         start = time.perf_counter()
         try:
             estimate = part.estimator.estimate(image, camera)
@@ -328,14 +528,17 @@ class EstimatorNode(Node):
         values["estimator_ms"] = 1000.0 * (time.perf_counter() - start)
         if estimate.found:
             part.pose_pub.publish(pose_msg(estimate.R, estimate.t, msg.header))
+            part.pose_covariance_pub.publish(pose_with_covariance_msg(
+                estimate.R, estimate.t, getattr(estimate, "covariance", None), msg.header))
         if self.get_parameter("debug_image").value and part.debug_pub.get_subscription_count() > 0:
             part.debug_pub.publish(image_msg(draw_overlay(image, estimate, part.name), msg.header))
-        level, message = diagnose(estimate, self.params)
+        level, message = diagnose(estimate, params)
         return self._status(part, msg, level, message, values, received)
 
-    def _status(self, part: Part, msg: Image, level: bytes, message: str, values: dict, received: float) -> DiagnosticStatus:
+    def _status(self, part: Part, msg, level: bytes, message: str, values: dict, received: float) -> DiagnosticStatus:
         values = {**values, "latency_ms": 1000.0 * (time.perf_counter() - received),
-                  "frames_skipped": self.frames.replaced}
+                  "frames_skipped": self.frames.replaced, "frames_lost": self.image_input.lost,
+                  "input_hz": self.rate.hz(time.perf_counter())}
         return diagnostic_status(part.status_name, level, message, msg.header.frame_id, values)
 
     def destroy_node(self) -> None:
@@ -350,13 +553,16 @@ class EstimatorNode(Node):
 
 def check_params_file(path: str | Path) -> None:
     """StartupError for a params file that is missing, not YAML, or sets a name the node does
-    not declare (for this node or ``/**``): rclpy would silently ignore such a typo."""
+    not declare (for this node, a namespaced ``/.../estimator`` or ``/**``): rclpy would
+    silently ignore such a typo. Values are checked when the node declares them."""
     try:
         data = yaml.safe_load(Path(path).read_text()) or {}
     except OSError as exc:
         raise StartupError(f"parameter file {path}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise StartupError(f"parameter file {path} is not a text file") from None
     except yaml.YAMLError as exc:
-        raise StartupError(f"parameter file {path} is not valid YAML: {exc}") from None
+        raise StartupError(f"parameter file {path} is not valid YAML: {one_line(exc)}") from None
     if not isinstance(data, dict):
         raise StartupError(f"parameter file {path} must map node names to ros__parameters")
     known = set(NODE_PARAMETERS) | set(EstimatorParams().flat()) | {"use_sim_time"}
@@ -369,17 +575,38 @@ def check_params_file(path: str | Path) -> None:
         return names
 
     names = []
-    for node_key in (NODE_NAME, f"/{NODE_NAME}", "/**"):
-        names += flatten((data.get(node_key) or {}).get("ros__parameters") or {})
+    for node_key, section in data.items():
+        if str(node_key) in (NODE_NAME, "/**") or str(node_key).endswith(f"/{NODE_NAME}"):
+            if not isinstance(section, dict) or not isinstance(section.get("ros__parameters") or {}, dict):
+                raise StartupError(f"parameter file {path}: {node_key} must hold a ros__parameters mapping")
+            names += flatten(section.get("ros__parameters") or {})
     unknown = sorted(n for n in set(names) if n not in known and not n.startswith("qos_overrides."))
     if unknown:
         raise StartupError(f"parameter file {path} sets unknown parameter(s): {', '.join(unknown)}")
 
 
+def ros_params_files(argv: list[str]) -> list[str]:
+    """The files given as ``--params-file F`` inside ``--ros-args ... [--]`` sections."""
+    files, in_ros_args = [], False
+    for i, arg in enumerate(argv):
+        if arg == "--ros-args":
+            in_ros_args = True
+        elif arg == "--":
+            in_ros_args = False
+        elif in_ros_args and arg == "--params-file" and i + 1 < len(argv):
+            files.append(argv[i + 1])
+    return files
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):
+        self.exit(2, f"estimator: error: {message} (see estimator --help)\n")
+
+
 def parse_args(argv: list[str]) -> tuple[list[str], argparse.Namespace]:
     """Split our own options from the ROS ones; ``--params-file F`` becomes
     ``--ros-args --params-file F`` since there is no ``ros2 run`` to do it."""
-    parser = argparse.ArgumentParser(prog="estimator", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="estimator", description=__doc__.splitlines()[0])
     parser.add_argument("--params-file", action="append", default=[],
                         help="ROS parameters YAML (estimator: ros__parameters: ...), e.g. config/node.yaml")
     args = parser.parse_args(rclpy.utilities.remove_ros_args(argv)[1:])
@@ -391,14 +618,19 @@ def parse_args(argv: list[str]) -> tuple[list[str], argparse.Namespace]:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the node until Ctrl-C or SIGTERM (rclpy's signal handlers shut the context down)."""
-    ros_args, args = parse_args(sys.argv if argv is None else argv)
+    argv = sys.argv if argv is None else argv
+    ros_args, args = parse_args(argv)
     try:
-        for path in args.params_file:
+        for path in [*args.params_file, *ros_params_files(argv)]:
             check_params_file(path)
     except StartupError as exc:
         print(f"estimator: cannot start: {exc}", file=sys.stderr)
         return 2
-    rclpy.init(args=ros_args)
+    try:
+        rclpy.init(args=ros_args)
+    except Exception as exc:  # rcl refuses malformed --ros-args with its own error types
+        print(f"estimator: cannot start: bad ROS arguments: {one_line(exc)}", file=sys.stderr)
+        return 2
     node = executor = None
     try:
         node = EstimatorNode()
@@ -407,7 +639,7 @@ def main(argv: list[str] | None = None) -> int:
         executor = make_executor(node.get_parameter("executor_threads").value)
         executor.add_node(node)
         node.get_logger().info(f"estimating {', '.join(p.name for p in node.parts)} from "
-                               f"{node.resolve_topic_name('image_raw')}")
+                               f"{node.image_input.topic}")
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -17,23 +17,39 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.context import Context
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image
+from rclpy.qos import ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from ..scene_folder import load_scene
 from .bags import read_bag
-from .messages import (DIAGNOSTICS_TOPIC, SENSOR_QOS, camera_info_msg, image_msg, make_executor, pose_from_msg,
-                       stamp_from_ns, stamp_ns, status_values)
+from .messages import (COMPRESSED_SUFFIX, DIAGNOSTICS_TOPIC, PUBLISHER_QOS, camera_info_msg, compressed_image_msg,
+                       image_msg, make_executor, pose_from_msg, stamp_from_ns, stamp_ns, status_values)
+
+TRANSPORTS = ("raw", "compressed")
+#: how long a reliable player waits for the node's subscription to turn reliable once
+#: matched (the node follows its publishers within a quarter of a second, node.py)
+QOS_SETTLE = 2.0
 
 
-def bag_frames(bag: str | Path, topic: str | None = None, info_topic: str | None = None) -> Iterator[tuple]:
-    """``(stamp_ns, Image, CameraInfo or None)`` messages of a bag for :class:`Player`, with the
-    recorded headers; images are re-encoded from ``bags.read_bag``'s arrays (mono8, mono16
-    and bgr8 stay as they were, other colour encodings arrive as bgr8)."""
+def bag_frames(bag: str | Path, topic: str | None = None, info_topic: str | None = None,
+               transport: str = "raw") -> Iterator[tuple]:
+    """``(stamp_ns, Image or CompressedImage, CameraInfo or None)`` messages of a bag for
+    :class:`Player`, with the recorded headers. ``raw`` re-encodes ``bags.read_bag``'s arrays
+    (mono8, mono16 and bgr8 stay as they were, other encodings arrive as bgr8);
+    ``compressed`` replays recorded CompressedImage data unchanged and PNG-encodes the rest."""
+    if transport not in TRANSPORTS:
+        raise ValueError(f"transport must be one of {', '.join(TRANSPORTS)}, got {transport!r}")
     for frame in read_bag(bag, topic, info_topic):
         header = Header(stamp=stamp_from_ns(frame.stamp_ns), frame_id=frame.frame_id)
         info = camera_info_msg(frame.camera, header) if frame.camera is not None else None
-        yield frame.stamp_ns, image_msg(frame.image, header), info
+        if transport == "raw":
+            image = image_msg(frame.image, header)
+        elif frame.compressed is not None:
+            image = CompressedImage(header=header, format=frame.compressed[0], data=frame.compressed[1])
+        else:
+            image = compressed_image_msg(frame.image, header)
+        yield frame.stamp_ns, image, info
 
 
 class RosSession:
@@ -130,9 +146,12 @@ class Playback:
 
 
 class Player:
-    """Publishes Image + CameraInfo frames into the node's input topics.
+    """Publishes Image (or CompressedImage) + CameraInfo frames into the node's input topics.
 
-    A frame is ``(stamp_ns, Image, CameraInfo or None)`` (see :func:`bag_frames`).
+    A frame is ``(stamp_ns, Image or CompressedImage, CameraInfo or None)`` (see
+    :func:`bag_frames`); ``transport`` ``compressed`` publishes on ``<image_topic>/compressed``.
+    ``reliability`` is what the player offers: ``best_effort`` as camera drivers do, or
+    ``reliable``, which large frames need between processes (docs/ros.md).
     ``lockstep`` waits after each image for the node's diagnostics of that image (same header
     stamp), so replay runs exactly as fast as the node keeps up and no frame is lost;
     ``rate`` keeps the recorded spacing of the stamps divided by ``speed``, like
@@ -140,16 +159,37 @@ class Player:
     """
 
     def __init__(self, node: Node, image_topic: str = "image_raw", info_topic: str = "camera_info",
-                 diagnostics: DiagnosticsListener | None = None):
-        self.image_pub = node.create_publisher(Image, image_topic, SENSOR_QOS)
-        self.info_pub = node.create_publisher(CameraInfo, info_topic, SENSOR_QOS)
+                 diagnostics: DiagnosticsListener | None = None, reliability: str = "best_effort",
+                 transport: str = "raw"):
+        if reliability not in PUBLISHER_QOS:
+            raise ValueError(f"reliability must be one of {', '.join(PUBLISHER_QOS)}, got {reliability!r}")
+        if transport not in TRANSPORTS:
+            raise ValueError(f"transport must be one of {', '.join(TRANSPORTS)}, got {transport!r}")
+        self.node = node
+        qos = PUBLISHER_QOS[reliability]
+        if transport == "compressed":
+            self.image_pub = node.create_publisher(CompressedImage, image_topic + COMPRESSED_SUFFIX, qos)
+        else:
+            self.image_pub = node.create_publisher(Image, image_topic, qos)
+        self.info_pub = node.create_publisher(CameraInfo, info_topic, qos)
+        self.reliable = reliability == "reliable"
         self.diagnostics = diagnostics or DiagnosticsListener(node)
 
     def wait_for_node(self, timeout: float = 10.0) -> None:
-        """Wait until the node subscribes to the images and we to its diagnostics."""
+        """Wait until the node subscribes to the images and we to its diagnostics; a reliable
+        player also gives the node's subscription a moment to follow it to reliable."""
         wait_until(lambda: self.image_pub.get_subscription_count() > 0
                    and self.diagnostics.subscription.get_publisher_count() > 0,
                    timeout, f"a node subscribed to {self.image_pub.topic_name} and publishing diagnostics")
+        if self.reliable:
+            try:
+                wait_until(self._subscribers_reliable, QOS_SETTLE, "reliable subscriptions")
+            except TimeoutError:
+                pass  # a node told to stay best effort: it still gets what arrives
+
+    def _subscribers_reliable(self) -> bool:
+        infos = self.node.get_subscriptions_info_by_topic(self.image_pub.topic_name)
+        return bool(infos) and all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
 
     def play(self, frames: Iterable, mode: str = "lockstep", speed: float = 1.0,
              timeout: float = 10.0) -> Playback:
