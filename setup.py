@@ -1,7 +1,10 @@
 """ament_python package brepose_ros: builds with colcon and installs with pip.
 
-The ROS 2 wheels are an optional extra (``pip install .[ros]``) so that a user with an apt
-ROS install never gets a second rclpy.
+Extras: ``[ros]`` the ROS 2 PyPI wheels (optional, so that a user with an apt ROS install
+never gets a second rclpy); ``[compile]`` the CAD stack (cadquery/OCP with VTK, about 2 GB)
+and plotting, needed only to compile aspect graphs, render scenes and evaluate. A robot that
+runs the node on precompiled graphs needs neither the CAD stack nor matplotlib:
+``pip install '.[ros]'`` (docs/ros.md).
 """
 from glob import glob
 
@@ -16,18 +19,16 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.xml")),
     ],
     python_requires=">=3.10",
     install_requires=[
         "numpy>=1.24",
         "scipy>=1.10",
         "opencv-python-headless>=4.8,<5",
-        "cadquery>=2.4",
         "rosbags>=0.10",
         "pyyaml>=6",
         "tqdm>=4.60",
-        "matplotlib>=3.7",
     ],
     extras_require={
         "ros": [
@@ -38,6 +39,7 @@ setup(
             "ros-kilted-diagnostic-msgs",
             "ros-kilted-visualization-msgs",
         ],
+        "compile": ["cadquery>=2.4", "matplotlib>=3.7"],
         "test": ["pytest>=7"],
     },
     zip_safe=True,

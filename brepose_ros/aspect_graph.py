@@ -56,6 +56,14 @@ _ARRAYS = {
 }
 
 
+#: size limits checked before anything is inflated: a 1,505-view graph is 1-3 MB on disk and
+#: 4-7 MB in memory, a 10,000-view one of a 214-face part about 75 and 50 MB; a file past
+#: these limits is not an aspect graph anyone compiled but damage or a zip bomb
+MAX_FILE_BYTES = 512 * 1024 * 1024
+MAX_INFLATED_BYTES = 1024 * 1024 * 1024
+#: the file holds one entry per array plus the metadata
+MAX_ENTRIES = len(_ARRAYS) + 1
+
 _METADATA_KEYS = ("format_version", "step_sha256", "params", "units", "model_diameter", "n_faces", "arrays",
                   "content_sha256")
 
@@ -156,6 +164,7 @@ class AspectGraph:
         path = Path(path)
         metadata, arrays = _read(path)
         _check_arrays(path, metadata, arrays)
+        _check_finite(path, arrays, metadata)
         claimed = metadata.pop("content_sha256", None)
         if claimed != _digest(metadata, arrays):
             raise AspectGraphError(f"{path}: content digest mismatch: the file was modified after it "
@@ -205,6 +214,7 @@ def _read(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
     if not zipfile.is_zipfile(path):
         raise AspectGraphError(f"{path} is truncated (its zip directory is missing); recompile it")
     try:
+        _check_sizes(path)
         with np.load(path, allow_pickle=False) as npz:
             if "metadata" not in npz.files:
                 raise AspectGraphError(f"{path} is an npz file but not an aspect graph (no metadata)")
@@ -246,6 +256,43 @@ def _parse_metadata(path: Path, text: str) -> dict:
     if missing:
         raise AspectGraphError(f"{path}: its metadata lacks {', '.join(missing)}")
     return metadata
+
+
+def _check_sizes(path: Path) -> None:
+    """Refuse a file whose size, zip directory or array headers exceed the limits, before
+    np.load inflates anything: the directory states every entry's inflated size (zipfile
+    never yields more), and each .npy header the size of the array np.load will allocate."""
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise AspectGraphError(f"{path} is {size} bytes, over the limit of {MAX_FILE_BYTES} for an aspect graph")
+    with zipfile.ZipFile(path) as archive:
+        entries = archive.infolist()
+        if len(entries) > MAX_ENTRIES:
+            raise AspectGraphError(f"{path} holds {len(entries)} entries, an aspect graph at most {MAX_ENTRIES}")
+        inflated = sum(entry.file_size for entry in entries)
+        if inflated > MAX_INFLATED_BYTES:
+            raise AspectGraphError(f"{path} would inflate to {inflated} bytes, over the limit of "
+                                   f"{MAX_INFLATED_BYTES}: not an aspect graph (damaged, or a zip bomb)")
+        for entry in (e for e in entries if e.filename.endswith(".npy")):  # others np.load reads as bytes
+            with archive.open(entry) as stream:
+                version = np.lib.format.read_magic(stream)
+                read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                               else np.lib.format.read_array_header_2_0)
+                shape, _, dtype = read_header(stream)
+            if int(np.prod(shape, dtype=np.int64)) * dtype.itemsize > entry.file_size:
+                raise AspectGraphError(f"{path}: array {entry.filename} claims shape {shape} of {dtype}, more "
+                                       f"than its {entry.file_size} bytes hold (damaged or tampered with)")
+
+
+def _check_finite(path: Path, arrays: dict[str, np.ndarray], metadata: dict) -> None:
+    """Refuse NaN or infinite numbers, which no compiler writes and which would poison every
+    pose computed from the graph, and a model diameter that is not a positive number."""
+    for name, a in arrays.items():
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            raise AspectGraphError(f"{path}: array {name} holds NaN or infinite values")
+    diameter = metadata.get("model_diameter")
+    if not (isinstance(diameter, (int, float)) and np.isfinite(diameter) and diameter > 0):
+        raise AspectGraphError(f"{path}: model_diameter must be a positive number, got {diameter!r}")
 
 
 def _check_arrays(path: Path, metadata: dict, arrays: dict[str, np.ndarray]) -> None:

@@ -38,13 +38,15 @@ class Harness(RosSession):
         self._next_stamp = 1_000_000_000
 
     def start_node(self, parameters: dict, **kwargs) -> EstimatorNode:
-        """An EstimatorNode in this context, with every topic matched before returning."""
+        """An EstimatorNode in this context, with every topic matched before returning (the
+        probe's images only when the node listens to them and follows its best effort)."""
         overrides = [Parameter(name, value=value) for name, value in parameters.items()]
         node = self.add(EstimatorNode(context=self.context, parameter_overrides=overrides, **kwargs))
         for part in node.parts:
             self.probe.create_subscription(PoseStamped, part.pose_pub.topic_name, self._on_pose, 10)
             wait_until(lambda p=part: p.pose_pub.get_subscription_count() > 0, TIMEOUT, "pose subscription")
-        wait_until(lambda: self.image_pub.get_subscription_count() > 0, TIMEOUT, "image subscription")
+        if node.image_input.topic == self.image_pub.topic_name and node.image_input.follows_publishers:
+            wait_until(lambda: self.image_pub.get_subscription_count() > 0, TIMEOUT, "image subscription")
         wait_until(lambda: node.diagnostics_pub.get_subscription_count() > 0, TIMEOUT, "diagnostics subscription")
         return node
 

@@ -21,8 +21,10 @@ import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticStatus
 from rcl_interfaces.msg import ParameterType
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import Image
+from rclpy.qos import ReliabilityPolicy
+from sensor_msgs.msg import CompressedImage, Image
 
 from brepose_ros.offline.compiler import compile_aspect_graph
 from brepose_ros.camera import Camera
@@ -31,7 +33,8 @@ from brepose_ros.geometry import matrix_from_quaternion, rotation_angle_deg
 from brepose_ros.ros.node import StartupError, check_params_file, main
 from brepose_ros.params import EstimatorParams
 from brepose_ros.evaluation.overlay import FOUND as FOUND_COLOUR
-from brepose_ros.ros.messages import camera_info_msg, image_from_msg, pose_from_msg, stamp_ns, status_values
+from brepose_ros.ros.messages import (PUBLISHER_QOS, camera_info_msg, compressed_image_msg, image_from_msg, image_msg,
+                                      pose_from_msg, stamp_ns, status_values)
 from brepose_ros.ros.replay import wait_until
 from brepose_ros.synthetic.scenes import SceneConfig, generate_scene
 from node_helpers import FRAME, TIMEOUT, Harness
@@ -65,6 +68,32 @@ class FakeEstimator:
 
     def close(self) -> None:
         pass
+
+
+class WatchedEstimator(FakeEstimator):
+    """A slow FakeEstimator that records every parameter hand-over made while it was estimating."""
+
+    def __init__(self, graph, params):
+        self.busy, self.changed_while_busy, self.handovers = False, [], 0
+        super().__init__(graph, params, delay=0.3)
+
+    @property
+    def params(self):
+        return self._params
+
+    @params.setter
+    def params(self, value):
+        if getattr(self, "busy", False):
+            self.changed_while_busy.append(value)
+        self.handovers += 1
+        self._params = value
+
+    def estimate(self, image, camera):
+        self.busy = True
+        try:
+            return super().estimate(image, camera)
+        finally:
+            self.busy = False
 
 
 def fake_loader(path: str):
@@ -337,3 +366,124 @@ def test_graph_file_refused_by_the_loader_stops_the_start(ros, tmp_path, content
         path.write_bytes(content)
     with pytest.raises(StartupError, match=f"aspect graph of part 'bracket' refused: .*{message}"):
         ros.start_node({"graphs": [str(path)]}, estimator_factory=FakeEstimator)
+
+
+def test_a_parameter_change_waits_for_the_image_in_flight(ros):
+    node = start(ros, factory=WatchedEstimator)
+    estimator = node.parts[0].estimator
+    stamp = ros.publish(part_image(), CAMERA)
+    wait_until(lambda: estimator.busy, TIMEOUT, "the estimator at work")
+    assert node.set_parameters([Parameter("matching.workers", value=2)])[0].successful
+    ros.answer(stamp)
+    assert estimator.params.matching.workers == 1, "the image in flight kept its parameters"
+    ros.answer(ros.publish(part_image(), CAMERA))
+    assert estimator.params.matching.workers == 2 and estimator.changed_while_busy == []
+
+
+@pytest.mark.parametrize("name, value, reason", [
+    ("matching.max_model_segments", 0, "range"),
+    ("matching.rotation_candidates", 100000, "range"),
+    ("pose.min_score", float("nan"), "range"),
+    ("pose.min_score", 1.5, "range"),
+    ("edges.blur_size", 4, "odd"),
+    ("fx", -1.0, "range"),
+    ("max_image_pixels", 0, "range"),
+    ("image_transport", "compressed", "read-only"),
+])
+def test_out_of_range_values_are_refused_at_run_time_with_the_reason(ros, name, value, reason):
+    node = start(ros)
+    before = node.get_parameter(name).value
+    result = node.set_parameters([Parameter(name, value=value)])[0]
+    assert not result.successful and reason in result.reason.lower()
+    assert node.get_parameter(name).value == before
+    ros.pose(ros.publish(part_image(), CAMERA))
+
+
+def test_descriptors_carry_the_ranges(ros):
+    node = start(ros)
+    [segments, score] = node.describe_parameters(["matching.max_model_segments", "pose.min_score"])
+    assert (segments.integer_range[0].from_value, segments.integer_range[0].to_value) == (4, 200)
+    assert (score.floating_point_range[0].from_value, score.floating_point_range[0].to_value) == (0.0, 1.0)
+
+
+@pytest.mark.parametrize("parameters, message", [
+    ({"matching.max_model_segments": 0}, "max_model_segments"),
+    ({"pose.min_score": float("inf")}, "min_score"),
+    ({"image_transport": "theora"}, "image_transport must be one of raw, compressed"),
+], ids=["int-range", "inf", "transport"])
+def test_out_of_range_start_values_stop_the_start(ros, parameters, message):
+    with pytest.raises(StartupError, match=message):
+        start(ros, **parameters)
+
+
+def test_the_pose_with_covariance_comes_beside_the_pose(ros):
+    node = start(ros)
+    received = []
+    ros.probe.create_subscription(PoseWithCovarianceStamped, node.parts[0].pose_covariance_pub.topic_name,
+                                  received.append, 10)
+    wait_until(lambda: node.parts[0].pose_covariance_pub.get_subscription_count() > 0, TIMEOUT, "subscription")
+    stamp = ros.publish(part_image(), CAMERA)
+    msg = wait_until(lambda: received, TIMEOUT, "a PoseWithCovarianceStamped")[0]
+    assert stamp_ns(msg.header.stamp) == stamp and msg.header.frame_id == FRAME
+    assert msg.pose.pose == ros.pose(stamp).pose
+
+
+def test_compressed_transport_takes_png_and_jpeg(ros):
+    node = start(ros, image_transport="compressed")
+    assert node.image_input.topic == "/image_raw/compressed"
+    publisher = ros.probe.create_publisher(CompressedImage, "image_raw/compressed", PUBLISHER_QOS["best_effort"])
+    wait_until(lambda: publisher.get_subscription_count() > 0, TIMEOUT, "compressed subscription")
+    for kind in ("png", "jpeg"):
+        header = ros.header()
+        ros.info_pub.publish(camera_info_msg(CAMERA, header))
+        publisher.publish(compressed_image_msg(part_image(), header, kind))
+        ros.pose(stamp_ns(header.stamp))
+    assert [call[0] for call in node.parts[0].estimator.calls] == [(120, 160, 3)] * 2
+
+
+def test_rectified_input_uses_p_and_no_distortion(ros):
+    node = start(ros, input_is_rectified=True)
+    info = camera_info_msg(Camera(200.0, 200.0, 79.5, 59.5, 160, 120, (0.1, 0.0, 0.0, 0.0, 0.0)), ros.header())
+    info.p = [190.0, 0.0, 81.0, 0.0, 0.0, 191.0, 58.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+    header = ros.header()
+    info.header = header
+    ros.info_pub.publish(info)
+    ros.image_pub.publish(image_msg(part_image(), header))
+    ros.pose(stamp_ns(header.stamp))
+    assert node.parts[0].estimator.calls[-1][1] == Camera(190.0, 191.0, 81.0, 58.0, 160, 120)
+    assert node.set_parameters([Parameter("input_is_rectified", value=False)])[0].successful
+    stamp = ros.publish(part_image())
+    ros.pose(stamp)
+    assert node.parts[0].estimator.calls[-1][1].distortion == (0.1, 0.0, 0.0, 0.0, 0.0)
+
+
+def test_qos_override_in_the_parameter_file_fixes_the_reliability(ros):
+    node = start(ros, **{"qos_overrides./image_raw.subscription.reliability": "reliable"})
+    assert not node.image_input.follows_publishers
+    assert node.image_input.reliability == ReliabilityPolicy.RELIABLE
+    reliable = ros.probe.create_publisher(Image, "image_raw", PUBLISHER_QOS["reliable"])
+    wait_until(lambda: reliable.get_subscription_count() > 0, TIMEOUT, "reliable match")
+
+
+def test_the_subscription_follows_a_reliable_publisher(ros):
+    node = start(ros)
+    assert node.image_input.reliability == ReliabilityPolicy.BEST_EFFORT  # the probe is best effort
+    ros.probe.destroy_publisher(ros.image_pub)
+    reliable = ros.probe.create_publisher(Image, "image_raw", PUBLISHER_QOS["reliable"])
+    wait_until(lambda: node.image_input.reliability == ReliabilityPolicy.RELIABLE, TIMEOUT, "a reliable subscription")
+    wait_until(lambda: reliable.get_subscription_count() > 0, TIMEOUT, "reliable match")
+    header = ros.header()
+    ros.info_pub.publish(camera_info_msg(CAMERA, header))
+    reliable.publish(image_msg(part_image(), header))
+    ros.pose(stamp_ns(header.stamp))
+
+
+def test_heartbeat_while_no_image_arrives(ros):
+    node = start(ros)
+    beat = wait_until(lambda: [a for a in ros.diagnostics.by_stamp.values()
+                               if a.status[0].name == "estimator: input"], 3 * TIMEOUT, "a heartbeat")[0]
+    [status] = beat.status
+    assert status.level == DiagnosticStatus.WARN and "no image received on /image_raw yet" in status.message
+    assert status_values(status)["publishers"] == "1"
+    ros.pose(ros.publish(part_image(), CAMERA))
+    assert float(status_values(ros.answer(ros.publish(part_image(), CAMERA))[0])["input_hz"]) > 0

@@ -624,12 +624,12 @@ def main(argv: list[str] | None = None) -> int:
         for path in [*args.params_file, *ros_params_files(argv)]:
             check_params_file(path)
     except StartupError as exc:
-        print(f"estimator: cannot start: {exc}", file=sys.stderr)
+        print(f"estimator: error: cannot start: {exc}", file=sys.stderr)
         return 2
     try:
         rclpy.init(args=ros_args)
     except Exception as exc:  # rcl refuses malformed --ros-args with its own error types
-        print(f"estimator: cannot start: bad ROS arguments: {one_line(exc)}", file=sys.stderr)
+        print(f"estimator: error: cannot start: bad ROS arguments: {one_line(exc)}", file=sys.stderr)
         return 2
     node = executor = None
     try:
@@ -647,7 +647,7 @@ def main(argv: list[str] | None = None) -> int:
         if rclpy.ok():  # else a signal shut the context down while starting: a clean stop
             if not isinstance(exc, StartupError):
                 raise
-            print(f"estimator: cannot start: {exc}", file=sys.stderr)
+            print(f"estimator: error: cannot start: {exc}", file=sys.stderr)
             return 2
     finally:
         if executor is not None:
