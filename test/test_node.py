@@ -487,3 +487,18 @@ def test_heartbeat_while_no_image_arrives(ros):
     assert status_values(status)["publishers"] == "1"
     ros.pose(ros.publish(part_image(), CAMERA))
     assert float(status_values(ros.answer(ros.publish(part_image(), CAMERA))[0])["input_hz"]) > 0
+
+
+def test_real_pipeline_covariance_is_a_small_positive_definite_matrix(ros, sample):
+    node = start_real(ros, sample)
+    received = []
+    ros.probe.create_subscription(PoseWithCovarianceStamped, node.parts[0].pose_covariance_pub.topic_name,
+                                  received.append, 10)
+    wait_until(lambda: node.parts[0].pose_covariance_pub.get_subscription_count() > 0, TIMEOUT, "subscription")
+    ros.publish(sample.image, sample.camera)
+    covariance = np.reshape(wait_until(lambda: received, 3 * TIMEOUT, "a pose with covariance")[0].pose.covariance,
+                            (6, 6))
+    assert np.all(np.linalg.eigvalsh(covariance) > 0)
+    position_sigma = np.sqrt(np.diag(covariance)[:3])
+    assert np.all(position_sigma < 0.05 * sample.diameter), position_sigma
+    assert np.all(np.degrees(np.sqrt(np.diag(covariance)[3:])) < 5.0)

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from brepose_ros.params import EstimatorParams, field_docs
+from brepose_ros.params import EstimatorParams, field_docs, field_ranges
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 HEADER = """\
@@ -84,3 +84,17 @@ def test_every_flat_parameter_is_documented():
 
 if __name__ == "__main__":
     write_estimator_yaml()
+
+
+def test_every_default_lies_in_its_range_and_the_bounds_are_enforced():
+    defaults, ranges = EstimatorParams().flat(), field_ranges()
+    assert ranges, "no ranges declared"
+    for name, (low, high) in ranges.items():
+        assert low <= defaults[name] <= high, name
+        assert type(low) is type(defaults[name]) or isinstance(defaults[name], float), name
+        for outside in (low - 1, high + 1):
+            with pytest.raises(ValueError, match=name.split(".")[1]):
+                EstimatorParams().with_flat({name: type(defaults[name])(outside)})
+    with pytest.raises(ValueError, match="must be int, got 2.5"):
+        EstimatorParams().with_flat({"matching.workers": 2.5})
+    assert EstimatorParams().with_flat({"pose.min_score": "1e-3"}).pose.min_score == 0.001

@@ -62,6 +62,10 @@ class Estimate:
     model_segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     timings: dict[str, float] = field(default_factory=dict)
     matched_view: int = -1  # graph view the bipartite matching chose, before refinement
+    #: (6, 6) covariance of the pose, x y z then rotations about x y z in the camera frame
+    #: (metres, radians): the polish's last Gauss-Newton normal matrix scaled by its residual
+    #: variance (``refinement.refine_poses``); None when not found or the polish took no step
+    covariance: np.ndarray | None = None
 
 
 class Estimator:
@@ -134,7 +138,7 @@ class Estimator:
                         error_ratio=pairs.error_ratio, view_index=self.graph.nearest_view(best.R, best.t),
                         n_image_segments=len(edges.segments), n_matched=pairs.n_matched, n_nearest=pairs.n_nearest,
                         image_segments=pairs.image_segments, model_segments=pairs.model_segments, timings=timings,
-                        matched_view=int(best.hypothesis.view))
+                        matched_view=int(best.hypothesis.view), covariance=best.covariance if found else None)
 
 
 def _lap(timings: dict, name: str, start: float) -> float:

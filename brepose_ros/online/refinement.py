@@ -94,6 +94,8 @@ class Candidate:
     R: np.ndarray
     t: np.ndarray
     hypothesis: Hypothesis
+    #: (6, 6) of the polished pose (``refine_poses``), None before the polish or if it took no step
+    covariance: np.ndarray | None = None
 
 
 def pose_from_similarity(R_view: np.ndarray, model_center: np.ndarray, *, scale: float, phi: float,
@@ -118,8 +120,13 @@ def associate_poses(model_3d: np.ndarray, spans: np.ndarray, R: np.ndarray, t: n
     return nearest_lines(projected, image_2d, tolerance)
 
 
+#: reorders refine_poses' unknowns (rotation vector, translation) to PoseWithCovariance's
+TRANSLATION_FIRST = [3, 4, 5, 0, 1, 2]
+
+
 def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: np.ndarray, spans: np.ndarray, *,
-                 f_scale: float, iterations: int, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 f_scale: float, iterations: int, weights: np.ndarray | None = None,
+                 covariance_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Robust Gauss-Newton on the point-to-line distances (normalised units), for B poses
     R (B, 3, 3), t (B, 3) at once: pairs (model points (K, P, 3), image line) ``spans[b]:spans[b + 1]``
     belong to pose b; the P points of a pair (a segment's 2 end points, or 1 sampled point)
@@ -137,6 +144,12 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
     with the very operations a single pose would use, so a pose refines to the same bits
     alone or in a batch. A pose with fewer than 3 pairs stays where it is; a pose stops
     once its step vanishes.
+
+    ``covariance_out`` (B, 6, 6), if given, receives each pose's covariance from its last
+    step (left as it is for a pose that took none): ``sigma^2 (J^T W J)^-1`` with the
+    weighted residual variance ``sigma^2 = sum(W r^2) / (n - 6)``, ordered translation
+    then rotation (x, y, z, then the rotation vector w of R <- exp(w) R), all in the camera
+    frame, metres and radians: PoseWithCovariance's order and meaning.
     """
     R, t = np.array(R, dtype=float), np.array(t, dtype=float)
     lines = line_equations(image_2d)  # (K, 3)
@@ -171,10 +184,14 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
         np.subtract(r2 * g0, r0 * g2, out=jac[1])
         np.subtract(r0 * g1, r1 * g0, out=jac[2])
         weight = f_scale / np.maximum(np.abs(residual), f_scale)  # Huber: 1 within f_scale
-        weighted = jac * (weight if pair_weights is None else weight * pair_weights)
+        point_weights = weight if pair_weights is None else weight * pair_weights
+        weighted = jac * point_weights
         for b in np.nonzero(active)[0]:
             lo, hi = ends[b], ends[b + 1]
             hessian = weighted[:, lo:hi] @ jac[:, lo:hi].T
+            if covariance_out is not None and hi - lo > 6:
+                variance = float(point_weights[lo:hi] @ residual[lo:hi] ** 2) / (hi - lo - 6)
+                covariance_out[b] = variance * np.linalg.pinv(hessian)[TRANSLATION_FIRST][:, TRANSLATION_FIRST]
             hessian.flat[::7] += 1e-6 * hessian.trace() / 6.0  # damping: degenerate line sets
             solved, step = cv2.solve(hessian, -(weighted[:, lo:hi] @ residual[lo:hi]), flags=cv2.DECOMP_CHOLESKY)
             step = step[:, 0]
@@ -189,7 +206,7 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
 
 def polish_pose(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, *, weights: np.ndarray, evidence: EdgeEvidence,
                 camera: Camera, radius_px: float, rounds: int, spacing_px: float, f_scale: float,
-                iterations: int) -> tuple[np.ndarray, np.ndarray]:
+                iterations: int, covariance_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Refine one pose on the Canny edge pixels rather than on the Hough lines.
 
     Points every ``spacing_px`` along the projected model segments (M, 2, 3) are paired
@@ -198,6 +215,7 @@ def polish_pose(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, *, weights: 
     edge, weighted by ``weights`` (M,) per segment; re-paired each round. Every projected
     edge speaks, where the line refinement only hears edges the line detector found
     (6-12 on the rounded bracket, whose arcs and holes give no Hough lines).
+    ``covariance_out`` (1, 6, 6) receives the covariance of the last step (``refine_poses``).
     """
     for _ in range(rounds):
         ends_px = camera.project_model(model_3d, R, t)
@@ -212,7 +230,8 @@ def polish_pose(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, *, weights: 
         direction = (delta / lengths[:, None])[segment[found]]
         lines = camera.undistort(np.stack([edge[found] - direction, edge[found] + direction], axis=1))
         R, t = refine_poses(R[None], t[None], points[found][:, None], lines, np.array([0, found.sum()]),
-                            f_scale=f_scale, iterations=iterations, weights=weights[segment[found]])
+                            f_scale=f_scale, iterations=iterations, weights=weights[segment[found]],
+                            covariance_out=covariance_out)
         R, t = R[0], t[0]
     return R, t
 
@@ -287,11 +306,14 @@ class PoseRefiner:
     def polish(self, best: Candidate, frame: Frame, p: PoseParams) -> Candidate:
         """The chosen pose refined on edge pixels (``polish_pose``) and scored again."""
         g, segments = self.graph, self.graph.visible_segments(best.R, best.t)
+        covariance = np.full((1, 6, 6), np.nan)
         R, t = polish_pose(best.R, best.t, g.seg_3d[segments], weights=POLISH_KIND_WEIGHTS[g.seg_kind[segments]],
                            evidence=frame.evidence, camera=frame.camera, radius_px=p.inlier_pixels,
                            rounds=POLISH_ROUNDS, spacing_px=POLISH_SPACING_PIXELS,
-                           f_scale=POLISH_HUBER_PIXELS / frame.camera.focal, iterations=ROUGH_ITERATIONS)
-        return Candidate(float(pose_scores(g, R[None], t[None], frame, p)[0]), R, t, best.hypothesis)
+                           f_scale=POLISH_HUBER_PIXELS / frame.camera.focal, iterations=ROUGH_ITERATIONS,
+                           covariance_out=covariance)
+        return Candidate(float(pose_scores(g, R[None], t[None], frame, p)[0]), R, t, best.hypothesis,
+                         covariance[0] if np.isfinite(covariance).all() else None)
 
     def refine(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams,
                rounds: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:

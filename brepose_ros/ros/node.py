@@ -529,7 +529,7 @@ class EstimatorNode(Node):
         if estimate.found:
             part.pose_pub.publish(pose_msg(estimate.R, estimate.t, msg.header))
             part.pose_covariance_pub.publish(pose_with_covariance_msg(
-                estimate.R, estimate.t, getattr(estimate, "covariance", None), msg.header))
+                estimate.R, estimate.t, estimate.covariance, msg.header))
         if self.get_parameter("debug_image").value and part.debug_pub.get_subscription_count() > 0:
             part.debug_pub.publish(image_msg(draw_overlay(image, estimate, part.name), msg.header))
         level, message = diagnose(estimate, params)
