@@ -38,6 +38,8 @@ FRAME = "camera_optical_frame"
 #: the node's memory is sampled this often, s
 RSS_PERIOD = 10.0
 WARM_UP_FRAMES = 5
+#: RSS growth is also given from this time on, s
+SETTLE_SECONDS = 60.0
 
 
 def rss_mb(pid: int) -> float:
@@ -120,10 +122,14 @@ def main() -> int:
 
     first, end = rss[0][1], rss[-1][1]
     peak = max(mb for _, mb in rss)
+    # the first minute fills the allocator's pools and the estimator's caches; growth after it
+    # is what a leak would show
+    settled = next((mb for t, mb in rss if t >= SETTLE_SECONDS), None)
     print(f"{len(images)} images {camera.width}x{camera.height} bgr8 at {args.rate:g} Hz for {seconds / 60:.1f} min, "
           f"{args.reliability} publisher, node in its own process")
     print(f"node RSS: {first:.0f} MB after warm-up, {end:.0f} MB at the end ({100 * (end - first) / first:+.1f} %), "
-          f"peak {peak:.0f} MB")
+          f"peak {peak:.0f} MB" + (f"; {settled:.0f} MB after {SETTLE_SECONDS:.0f} s, "
+                                   f"{100 * (end - settled) / settled:+.1f} % since" if settled else ""))
     print(f"frames: {len(published)} published, {len(answered)} answered "
           f"({len(answered) / seconds:.2f}/s); node: frames_skipped {last.get('frames_skipped', '?')}, "
           f"frames_lost {last.get('frames_lost', '?')}, input_hz {last.get('input_hz', '?')}")

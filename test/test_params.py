@@ -21,12 +21,15 @@ HEADER = """\
 
 def write_estimator_yaml(path: Path = CONFIG / "estimator.yaml") -> None:
     """config/estimator.yaml from the defaults, each value under its documentation."""
-    docs = field_docs()
+    docs, ranges = field_docs(), field_ranges()
     lines = [HEADER]
     for group, values in EstimatorParams().to_dict().items():
         lines.append(f"{group}:")
         for key, value in values.items():
-            lines += [f"  # {line}" for line in textwrap.wrap(docs[f"{group}.{key}"], 92)]
+            text = docs[f"{group}.{key}"]
+            if f"{group}.{key}" in ranges:
+                text += " [range {:g} to {:g}]".format(*ranges[f"{group}.{key}"])
+            lines += [f"  # {line}" for line in textwrap.wrap(text, 92)]
             lines.append(f"  {key}: {yaml.safe_dump(value).removesuffix(chr(10)).removesuffix('...').strip()}")
         lines.append("")
     path.write_text("\n".join(lines).rstrip() + "\n")
