@@ -36,8 +36,15 @@ def check_ranges(instance) -> None:
             raise ValueError(f"{f.name} must be in [{low:g}, {high:g}], got {value}")
 
 
+class Ranged:
+    """Mix-in of the params groups: every value is checked against its range when made."""
+
+    def __post_init__(self):
+        check_ranges(self)
+
+
 @dataclass(frozen=True)
-class EdgeParams:
+class EdgeParams(Ranged):
     """Every threshold of the image edge stage; lengths in pixels unless named ``*_fraction``."""
 
     detector: str = doc("'hough' (Canny + HoughLinesP, the paper's method) or 'lsd' (OpenCV LSD)", "hough")
@@ -63,13 +70,13 @@ class EdgeParams:
     def __post_init__(self):
         if self.detector not in DETECTORS:
             raise ValueError(f"detector must be one of {DETECTORS}, got {self.detector!r}")
-        check_ranges(self)
+        super().__post_init__()
         if self.blur_size % 2 == 0:
             raise ValueError(f"blur_size must be a positive odd integer, got {self.blur_size}")
 
 
 @dataclass(frozen=True)
-class MatchParams:
+class MatchParams(Ranged):
     """Tetrad metric space and bipartite matching (seed paper sections 3 and 6)."""
 
     weight_length: float = doc("weight of the length difference in the tetrad distance", 1.0, 0.0, 100.0)
@@ -91,12 +98,9 @@ class MatchParams:
     hypotheses: int = doc("best-covered (view, rotation) hypotheses per region turned into poses and verified", 6, 1, 64)
     workers: int = doc("worker threads that split each region's batch of (view, rotation) jobs; 1 by default: the batched steps are short and mostly hold the GIL, and 2 threads measured no faster (bench/latency.py)", 1, 1, 16)
 
-    def __post_init__(self):
-        check_ranges(self)
-
 
 @dataclass(frozen=True)
-class PoseParams:
+class PoseParams(Ranged):
     """Metric pose, refinement and the found / not-found decision."""
 
     # refine_iterations stops at 6: the estimator's refinement schedule has 6 rounds
@@ -107,9 +111,6 @@ class PoseParams:
     min_size_pixels: float = doc("smallest diagonal of the projected part, pixels; smaller poses score 0", 40.0, 0.0, 10000.0)
     min_score: float = doc("a pose with a lower score is reported as not found", 0.6, 0.0, 1.0)
     warn_error_ratio: float = doc("diagnostics turn WARN above this error ratio", 0.5, 0.0, 1.0)
-
-    def __post_init__(self):
-        check_ranges(self)
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,6 @@ under Fast DDS defaults (docs/ros.md); ``--image-transport compressed`` publishe
 CompressedImage on ``<image-topic>/compressed`` (recorded compressed frames unchanged).
 A bad bag or option prints ``play_bag: error: ...`` and exits with status 2.
 """
-import argparse
 import statistics
 import sys
 

@@ -13,7 +13,6 @@ import json
 import math
 import os
 import struct
-import time
 import zipfile
 import zlib
 from pathlib import Path
@@ -23,9 +22,8 @@ import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.parameter import Parameter
-from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
-from sensor_msgs.msg import CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from brepose_ros import aspect_graph
@@ -38,10 +36,11 @@ from brepose_ros.cli import render as render_cli
 from brepose_ros.offline.compiler import compile_aspect_graph
 from brepose_ros.ros import node as node_main
 from brepose_ros.ros.bags import write_bag
-from brepose_ros.ros.messages import PUBLISHER_QOS, camera_info_msg, image_msg
+from brepose_ros.ros.messages import PUBLISHER_QOS, camera_info_msg
 from brepose_ros.ros.replay import wait_until
 from brepose_ros.synthetic.scenes import SceneConfig, generate_scene
 from node_helpers import TIMEOUT, Harness
+from test_bags import write_foreign_bag
 
 REPO = Path(__file__).resolve().parents[1]
 STORE = get_typestore(Stores.ROS2_KILTED)
@@ -134,13 +133,7 @@ def step_without_solids() -> str:
 
 
 def foreign_bag(path: Path, messages) -> Path:
-    """A bag as another recorder writes it: (topic, msgtype, msg) in order, 1 s apart."""
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = {}
-        for i, (topic, msgtype, msg) in enumerate(messages):
-            if topic not in conns:
-                conns[topic] = writer.add_connection(topic, msgtype, typestore=STORE)
-            writer.write(conns[topic], (i + 1) * 10**9, STORE.serialize_cdr(msg, msgtype))
+    write_foreign_bag(path, messages)
     return path
 
 
@@ -423,7 +416,7 @@ BAD_IMAGES = [
 ]
 
 
-def bad_info(change) -> "CameraInfo":
+def bad_info(change) -> CameraInfo:
     info = camera_info_msg(CAMERA, Header())
     change(info)
     return info

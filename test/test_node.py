@@ -479,7 +479,7 @@ def test_the_subscription_follows_a_reliable_publisher(ros):
 
 
 def test_heartbeat_while_no_image_arrives(ros):
-    node = start(ros)
+    start(ros)
     beat = wait_until(lambda: [a for a in ros.diagnostics.by_stamp.values()
                                if a.status[0].name == "estimator: input"], 3 * TIMEOUT, "a heartbeat")[0]
     [status] = beat.status

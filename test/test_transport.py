@@ -67,7 +67,7 @@ class NodeProcess:
     def play(self, bag: Path, *options: str) -> int:
         """Frames answered of a lock-step play_bag.py run."""
         result = subprocess.run([sys.executable, str(PLAY_BAG), str(bag), "--image-topic", "/camera/image_raw",
-                                 "--info-topic", "/camera/camera_info", "--timeout", "3", *options],
+                                 "--info-topic", "/camera/camera_info", "--timeout", "10", *options],
                                 capture_output=True, text=True, env=self.env, timeout=180)
         assert result.returncode == 0, result.stderr
         return int(re.search(r"the node answered (\d+)", result.stdout).group(1))

@@ -10,9 +10,8 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-import rclpy
 from builtin_interfaces.msg import Time
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
@@ -30,9 +29,6 @@ def latest_only(reliability: ReliabilityPolicy) -> QoSProfile:
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=reliability)
 
 
-#: the node's input QoS before the publishers are known (``BEST_AVAILABLE``: the node follows
-#: what its publishers offer, see ``node.InputSubscription``)
-LATEST_ONLY = latest_only(ReliabilityPolicy.BEST_AVAILABLE)
 #: what cameras publish with (best effort); our players also offer reliable
 SENSOR_QOS = qos_profile_sensor_data
 RELIABLE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE)

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import copy
 import re
 import sys
 import threading
@@ -72,7 +73,7 @@ from ..evaluation.overlay import draw_overlay
 from ..image_codec import MAX_IMAGE_PIXELS, camera_from_info
 from ..online.estimator import Estimate, Estimator
 from ..params import EstimatorParams, field_docs, field_ranges, one_line
-from .messages import (COMPRESSED_SUFFIX, DIAGNOSTICS_TOPIC, LATEST_ONLY, diagnostic_status, image_from_msg,
+from .messages import (COMPRESSED_SUFFIX, DIAGNOSTICS_TOPIC, diagnostic_status, image_from_msg,
                        image_msg, latest_only, make_executor, pose_msg, pose_with_covariance_msg)
 
 NODE_NAME = "estimator"
@@ -211,8 +212,8 @@ class InputSubscription:
             wanted = self.wanted()
             if wanted == self.reliability:
                 return
-            profile = QoSProfile(history=self.profile.history, depth=self.profile.depth, reliability=wanted,
-                                 durability=self.profile.durability)
+            profile = copy.copy(self.profile)  # every overridden policy but the reliability stays
+            profile.reliability = wanted
             old, self.subscription = self.subscription, self._create(profile)
             self.node.destroy_subscription(old)
             first, self.reliability = self.reliability == ReliabilityPolicy.BEST_AVAILABLE, wanted
