@@ -133,8 +133,9 @@ def main() -> int:
     print(f"frames: {len(published)} published, {len(answered)} answered "
           f"({len(answered) / seconds:.2f}/s); node: frames_skipped {last.get('frames_skipped', '?')}, "
           f"frames_lost {last.get('frames_lost', '?')}, input_hz {last.get('input_hz', '?')}")
-    print(f"latency, publish to diagnostics, ms: p50 {percentile(latencies, 0.5):.0f}, p90 {percentile(latencies, 0.9):.0f}, "
-          f"p99 {percentile(latencies, 0.99):.0f}, max {max(latencies, default=float('nan')):.0f}"
+    print(f"latency, publish to diagnostics, ms: p50 {percentile(latencies, 0.5):.0f}, "
+          f"p90 {percentile(latencies, 0.9):.0f}, p99 {percentile(latencies, 0.99):.0f}, "
+          f"max {max(latencies, default=float('nan')):.0f}"
           + (f", mean {statistics.mean(latencies):.0f}" if latencies else ""))
     print("RSS samples (s, MB): " + ", ".join(f"{t:.0f} {mb:.0f}" for t, mb in rss))
     return 0

@@ -50,21 +50,26 @@ class EdgeParams(Ranged):
     detector: str = doc("'hough' (Canny + HoughLinesP, the paper's method) or 'lsd' (OpenCV LSD)", "hough")
     blur_size: int = doc("odd Gaussian kernel size before edge detection; 1 disables the blur", 5, 1, 31)
     blur_sigma: float = doc("Gaussian sigma, pixels; 0 derives it from blur_size", 0.0, 0.0, 20.0)
-    canny_noise_factor: float = doc("Canny high threshold in units of the gradient noise level (median gradient / 1.18)", 5.0, 0.1, 100.0)
+    canny_noise_factor: float = doc(
+        "Canny high threshold in units of the gradient noise level (median gradient / 1.18)", 5.0, 0.1, 100.0)
     canny_low_ratio: float = doc("Canny low threshold as a share of the high one", 0.4, 0.01, 1.0)
-    canny_min_high: float = doc("floor of the Canny high threshold (Sobel magnitude of a 0..255 image) for noise-free images", 6.0, 0.1, 1000.0)
+    canny_min_high: float = doc(
+        "floor of the Canny high threshold (Sobel magnitude of a 0..255 image) for noise-free images", 6.0, 0.1, 1000.0)
     hough_rho: float = doc("HoughLinesP distance resolution, pixels", 1.0, 0.5, 10.0)
     hough_theta_deg: float = doc("HoughLinesP angle resolution, degrees", 1.0, 0.1, 10.0)
-    hough_vote_ratio: float = doc("HoughLinesP accumulator threshold as a share of the minimum line length", 0.5, 0.01, 10.0)
+    hough_vote_ratio: float = doc(
+        "HoughLinesP accumulator threshold as a share of the minimum line length", 0.5, 0.01, 10.0)
     raw_min_length_fraction: float = doc(
         "shortest raw segment before merging (HoughLinesP minLineLength; shorter LSD pieces are dropped), "
         "share of the image diagonal", 0.015, 0.0, 1.0)
     hough_max_gap: float = doc("largest gap HoughLinesP bridges inside one segment, pixels", 3.0, 0.0, 100.0)
     merge_angle_deg: float = doc("pieces of one edge differ in direction by at most this, degrees", 2.0, 0.1, 45.0)
-    merge_distance: float = doc("both end points of a piece lie this close to the edge's fitted line, pixels", 2.0, 0.0, 50.0)
+    merge_distance: float = doc(
+        "both end points of a piece lie this close to the edge's fitted line, pixels", 2.0, 0.0, 50.0)
     merge_gap: float = doc("largest gap along the line between pieces of one edge, pixels", 15.0, 0.0, 500.0)
     refine: bool = doc("refit each merged Hough segment to the Canny pixels along it and extend it over them", True)
-    min_length_fraction: float = doc("merged segments shorter than this share of the image diagonal are dropped", 0.03, 0.0, 1.0)
+    min_length_fraction: float = doc(
+        "merged segments shorter than this share of the image diagonal are dropped", 0.03, 0.0, 1.0)
     max_segments: int = doc("at most this many merged segments are kept, longest first", 200, 1, 2000)
 
     def __post_init__(self):
@@ -80,14 +85,23 @@ class MatchParams(Ranged):
     """Tetrad metric space and bipartite matching (seed paper sections 3 and 6)."""
 
     weight_length: float = doc("weight of the length difference in the tetrad distance", 1.0, 0.0, 100.0)
-    weight_midpoint: float = doc("weight of the midpoint difference (length and angle of the midpoint)", 1.0, 0.0, 100.0)
-    weight_orientation: float = doc("weight of the orientation difference (angle of the perpendicular), radians", 0.5, 0.0, 100.0)
-    weight_perpendicular: float = doc("weight of the perpendicular foot-point difference (length and angle of the perpendicular)", 0.5, 0.0, 100.0)
-    empty_coefficient: float = doc("distance of an empty element, as a share of the largest pair distance; pairs farther than twice this are left unmatched", 0.25, 0.001, 10.0)
-    nearest_threshold: float = doc("pairs closer than this share of the empty distance form the nearest group", 0.5, 0.0, 1.0)
-    shortlist_size: int = doc("(view, rotation) pairs per region kept by the chamfer pre-filter for Kuhn-Munkres", 48, 1, 256)
-    rotation_candidates: int = doc("peaks of the orientation correlation tried per view, each also turned by 180 degrees", 2, 1, 16)
-    coverage_tolerance: float = doc("distance (normalised units) within which aligned edges cover each other when ranking views", 0.04, 0.001, 1.0)
+    weight_midpoint: float = doc(
+        "weight of the midpoint difference (length and angle of the midpoint)", 1.0, 0.0, 100.0)
+    weight_orientation: float = doc(
+        "weight of the orientation difference (angle of the perpendicular), radians", 0.5, 0.0, 100.0)
+    weight_perpendicular: float = doc(
+        "weight of the perpendicular foot-point difference (length and angle of the perpendicular)", 0.5, 0.0, 100.0)
+    empty_coefficient: float = doc(
+        "distance of an empty element, as a share of the largest pair distance; pairs farther than twice this"
+        " are left unmatched", 0.25, 0.001, 10.0)
+    nearest_threshold: float = doc(
+        "pairs closer than this share of the empty distance form the nearest group", 0.5, 0.0, 1.0)
+    shortlist_size: int = doc(
+        "(view, rotation) pairs per region kept by the chamfer pre-filter for Kuhn-Munkres", 48, 1, 256)
+    rotation_candidates: int = doc(
+        "peaks of the orientation correlation tried per view, each also turned by 180 degrees", 2, 1, 16)
+    coverage_tolerance: float = doc(
+        "distance (normalised units) within which aligned edges cover each other when ranking views", 0.04, 0.001, 1.0)
     max_model_segments: int = doc("longest view segments used in matching", 60, 4, 200)
     max_image_segments: int = doc("longest image segments used in matching per region", 90, 4, 300)
     max_regions: int = doc("candidate image regions (whole image, edge clusters) matched per image", 6, 1, 32)
@@ -95,8 +109,11 @@ class MatchParams(Ranged):
         "segments whose end points lie closer than this share of the image diagonal chain into one cluster "
         "(a candidate region); as long as the shortest segment kept (edges.min_length_fraction), so that the "
         "edges of one part meeting at its corners chain, while objects apart by more stay apart", 0.03, 0.0, 0.5)
-    hypotheses: int = doc("best-covered (view, rotation) hypotheses per region turned into poses and verified", 6, 1, 64)
-    workers: int = doc("worker threads that split each region's batch of (view, rotation) jobs; 1 by default: the batched steps are short and mostly hold the GIL, and 2 threads measured no faster (bench/latency.py)", 1, 1, 16)
+    hypotheses: int = doc(
+        "best-covered (view, rotation) hypotheses per region turned into poses and verified", 6, 1, 64)
+    workers: int = doc(
+        "worker threads that split each region's batch of (view, rotation) jobs; 1 by default: the batched "
+        "steps are short and mostly hold the GIL, and 2 threads measured no faster (bench/latency.py)", 1, 1, 16)
 
 
 @dataclass(frozen=True)
@@ -104,11 +121,16 @@ class PoseParams(Ranged):
     """Metric pose, refinement and the found / not-found decision."""
 
     # refine_iterations stops at 6: the estimator's refinement schedule has 6 rounds
-    refine_iterations: int = doc("re-match and refine rounds of every hypothesis; 0 keeps the first pose from the view", 6, 0, 6)
-    climb_candidates: int = doc("best-scoring refined hypotheses that go on to the search over neighbouring views", 2, 1, 16)
-    view_search_steps: int = doc("steps of the hill-climb over neighbouring aspect-graph views; 0 turns it off", 4, 0, 50)
-    inlier_pixels: float = doc("distance of a projected model edge to an image edge still counted as found, pixels", 2.0, 0.1, 50.0)
-    min_size_pixels: float = doc("smallest diagonal of the projected part, pixels; smaller poses score 0", 40.0, 0.0, 10000.0)
+    refine_iterations: int = doc(
+        "re-match and refine rounds of every hypothesis; 0 keeps the first pose from the view", 6, 0, 6)
+    climb_candidates: int = doc(
+        "best-scoring refined hypotheses that go on to the search over neighbouring views", 2, 1, 16)
+    view_search_steps: int = doc(
+        "steps of the hill-climb over neighbouring aspect-graph views; 0 turns it off", 4, 0, 50)
+    inlier_pixels: float = doc(
+        "distance of a projected model edge to an image edge still counted as found, pixels", 2.0, 0.1, 50.0)
+    min_size_pixels: float = doc(
+        "smallest diagonal of the projected part, pixels; smaller poses score 0", 40.0, 0.0, 10000.0)
     min_score: float = doc("a pose with a lower score is reported as not found", 0.6, 0.0, 1.0)
     warn_error_ratio: float = doc("diagnostics turn WARN above this error ratio", 0.5, 0.0, 1.0)
 

@@ -80,8 +80,9 @@ def png_claiming(width: int, height: int) -> bytes:
     """A PNG signature and IHDR claiming a size, followed by a tiny deflate stream: what a
     decompression bomb looks like to a reader that trusts the header."""
     ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    chunk = lambda kind, data: (struct.pack(">I", len(data)) + kind + data
-                                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
     return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(bytes(4096)))
             + chunk(b"IEND", b""))
 
@@ -461,6 +462,7 @@ def ros():
     harness.close()
 
 
+@pytest.mark.ros
 def test_node_answers_bad_input_with_errors_and_keeps_going(ros, good):
     ros.start_node({"graphs": [str(good["graph"])]})
     image = cv2.imread(str(good["image"]), cv2.IMREAD_UNCHANGED)
@@ -489,6 +491,7 @@ def test_node_answers_bad_input_with_errors_and_keeps_going(ros, good):
     assert rss_mb() - before < 100, f"memory grew from {before:.0f} to {rss_mb():.0f} MB over the corpus"
 
 
+@pytest.mark.ros
 def test_node_answers_bad_compressed_images_with_errors(ros, good):
     node = ros.start_node({"graphs": [str(good["graph"])], "image_transport": "compressed"})
     publisher = ros.probe.create_publisher(CompressedImage, "image_raw/compressed", PUBLISHER_QOS["best_effort"])

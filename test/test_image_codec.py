@@ -12,6 +12,8 @@ from brepose_ros.image_codec import (compressed_size, decode_compressed, decode_
 from brepose_ros.ros.messages import camera_info_msg
 from std_msgs.msg import Header
 
+pytestmark = pytest.mark.ros  # CameraInfo messages
+
 BGR = (10, 100, 200)  # a colour whose channels differ, so a swapped pattern shows
 #: the colour filter at (row 0, col 0), (0, 1), (1, 0), (1, 1) of each ROS Bayer pattern
 PATTERNS = {"bayer_rggb8": "RGGB", "bayer_bggr8": "BGGR", "bayer_gbrg8": "GBRG", "bayer_grbg8": "GRBG"}

@@ -351,7 +351,8 @@ def test_shipped_node_yaml_sets_only_declared_and_valid_parameters():
 
 def test_main_refuses_an_unknown_parameter_in_the_params_file(tmp_path, capsys):
     params = tmp_path / "node.yaml"
-    params.write_text("estimator:\n  ros__parameters:\n    graphs: [a.npz]\n    matching:\n      empty_coeficient: 0.3\n")
+    params.write_text("estimator:\n  ros__parameters:\n    graphs: [a.npz]\n"
+                      "    matching:\n      empty_coeficient: 0.3\n")
     assert main(["estimator", "--params-file", str(params)]) == 2
     assert "unknown parameter(s): matching.empty_coeficient" in capsys.readouterr().err
 

@@ -55,6 +55,7 @@ def clean_env() -> dict:
 
 
 @pytest.mark.slow
+@pytest.mark.ros
 def test_ros_extra_alone_runs_the_node_without_the_cad_stack(sample_step, tmp_path):
     graph = compile_aspect_graph(sample_step, step_deg=20.0, workers=1, progress=False).save(
         tmp_path / "sample_bracket.brepose.npz")

@@ -28,6 +28,8 @@ PLAY_BAG = REPO / "launch_free_scripts" / "play_bag.py"
 SIZES = {"640x480": (640, 480, 30), "1920x1080": (1920, 1080, 10)}  # width, height, frames
 TIMEOUT = 30.0
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
 
 def ros_env(**extra) -> dict:
     """A random domain so that parallel runs do not hear each other; discovery on (two processes)."""

@@ -34,7 +34,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--occlusion", type=non_negative_float, default=d.occlusion,
                    help="share of the part to hide behind an occluder, 0-0.5 (default 0)")
     p.add_argument("--clutter", type=non_negative_int, default=d.clutter, help="shapes behind the part (default 0)")
-    p.add_argument("--noise", type=non_negative_float, default=d.noise, help=f"noise sigma, grey levels (default {d.noise})")
+    p.add_argument("--noise", type=non_negative_float, default=d.noise,
+                   help=f"noise sigma, grey levels (default {d.noise})")
     p.add_argument("--blur", type=non_negative_float, default=d.blur, help=f"blur sigma, pixels (default {d.blur})")
     p.add_argument("--offcenter", action="store_true", help="part anywhere in the central 80 %% of the image")
     p.add_argument("--width", type=positive_int, default=d.width)
@@ -42,7 +43,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--fx", type=positive_float, default=d.fx, help=f"focal length in pixels, fx = fy (default {d.fx})")
     p.add_argument("--span-min", type=positive_float, default=d.span[0],
                    help=f"smallest part size, share of the image's smaller side (default {d.span[0]})")
-    p.add_argument("--span-max", type=positive_float, default=d.span[1], help=f"largest part size (default {d.span[1]})")
+    p.add_argument("--span-max", type=positive_float, default=d.span[1],
+                   help=f"largest part size (default {d.span[1]})")
     p.add_argument("--elevation", type=float, nargs=2, metavar=("LO", "HI"),
                    help="viewpoints only this many degrees above the model XY plane (default: whole sphere)")
     p.add_argument("--color", action="store_true", help="BGR images instead of grey")

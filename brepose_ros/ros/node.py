@@ -218,7 +218,8 @@ class InputSubscription:
             self.node.destroy_subscription(old)
             first, self.reliability = self.reliability == ReliabilityPolicy.BEST_AVAILABLE, wanted
         if not first:
-            self.node.get_logger().info(f"{self.topic}: subscription now {wanted.name.lower()}, as its publishers offer")
+            self.node.get_logger().info(f"{self.topic}: subscription now {wanted.name.lower()}, "
+                                        "as its publishers offer")
 
     @property
     def reliability_name(self) -> str:

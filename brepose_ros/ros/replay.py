@@ -142,7 +142,8 @@ class Playback:
 
     def latencies_ms(self, diagnostics: DiagnosticsListener) -> dict[int, float]:
         """Publish-to-diagnostics time of every answered image, by stamp."""
-        return {s: 1000.0 * (diagnostics.arrived[s] - t) for s, t in self.published_at.items() if s in diagnostics.arrived}
+        arrived = diagnostics.arrived
+        return {s: 1000.0 * (arrived[s] - t) for s, t in self.published_at.items() if s in arrived}
 
 
 class Player:
