@@ -1,7 +1,9 @@
-"""Stage 2 (offline): compile the aspect graph of a STEP part, view by view in parallel processes.
+"""Stage 2 (offline): compile the aspect graph of a part, view by view in parallel processes.
 
-For each view on the sphere (``viewsphere``) the visible line sections (``hidden_lines``)
-are laid out flat as the ``aspect_graph`` file format describes.
+For each view on the sphere (``viewsphere``) the visible line sections are laid out flat
+as the ``aspect_graph`` file format describes. A STEP file's lines come from OpenCascade's
+hidden-line removal (``cad``, ``hidden_lines``), a mesh file's (PLY, STL, OBJ) from its
+creases and outlines (``mesh``, ``mesh_lines``); both removers have the same interface.
 """
 from __future__ import annotations
 
@@ -17,25 +19,38 @@ from ..viewsphere import fibonacci_directions, lonlat_directions, view_ups
 from .cad import load_step
 from .hidden_lines import (DEFAULT_CHORD_TOLERANCE, DEFAULT_METHOD, DEFAULT_MIN_LENGTH, KIND_NAMES,
                            HiddenLineRemover, view_coordinates)
+from .mesh import is_mesh_file, load_mesh
+from .mesh_lines import DEFAULT_CREASE_ANGLE_DEG, MeshLineRemover
 
 #: Golden-spiral spacing of the views: about 1,500 views, no direction more than 4 degrees
 #: from its nearest view.
 DEFAULT_STEP_DEG = 5.0
 
 
-_remover: HiddenLineRemover | None = None  # one per worker process
+_remover: HiddenLineRemover | MeshLineRemover | None = None  # one per worker process
 
 
-def _start_worker(step_path: str, options: dict) -> None:
+def _load(model_path: str, units: str | None):
+    """The part and the class of its hidden-line remover, by the file's kind."""
+    if is_mesh_file(model_path):
+        return load_mesh(model_path, units), MeshLineRemover
+    if units is not None:
+        raise ValueError(f"{Path(model_path).name}: units apply to mesh files only; "
+                         f"a STEP file declares its own")
+    return load_step(model_path), HiddenLineRemover
+
+
+def _start_worker(model_path: str, units: str | None, options: dict) -> None:
     global _remover
-    _remover = HiddenLineRemover(load_step(step_path), **options)
+    part, remover = _load(model_path, units)
+    _remover = remover(part, **options)
 
 
 def _visible_in_worker(task):
     return _visible(_remover, task)
 
 
-def _visible(remover: HiddenLineRemover, task: tuple[int, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+def _visible(remover: HiddenLineRemover | MeshLineRemover, task: tuple[int, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
     """3D sections and kinds of a run of views (index of the first, their rotations)."""
     first, rotations = task
     results = []
@@ -49,31 +64,34 @@ def _visible(remover: HiddenLineRemover, task: tuple[int, np.ndarray]) -> list[t
     return results
 
 
-def _run(part, step_path: str, tasks: list, options: dict, workers: int):
+def _run(part, remover, model_path: str, units: str | None, tasks: list, options: dict, workers: int):
     """Results of the tasks in order, in this process or in a pool of ``workers``."""
     if workers == 1:
-        remover = HiddenLineRemover(part, **options)
+        remover = remover(part, **options)
         yield from (_visible(remover, task) for task in tasks)
         return
     import multiprocessing
 
     # spawn: a forked child deadlocks in OCCT's STEP reader. Each worker loads the file itself.
-    with multiprocessing.get_context("spawn").Pool(workers, _start_worker, (step_path, options)) as pool:
+    with multiprocessing.get_context("spawn").Pool(workers, _start_worker, (model_path, units, options)) as pool:
         yield from pool.imap(_visible_in_worker, tasks)
 
 
 def compile_aspect_graph(step_path: str | Path, step_deg: float = DEFAULT_STEP_DEG, lonlat: int | None = None,
                          workers: int | None = None, include_smooth: bool = False,
                          chord_tolerance: float = DEFAULT_CHORD_TOLERANCE, min_length: float = DEFAULT_MIN_LENGTH,
-                         method: str = DEFAULT_METHOD, progress: bool = True) -> AspectGraph:
-    """Compile the aspect graph of a STEP part.
+                         method: str = DEFAULT_METHOD, progress: bool = True, units: str | None = None,
+                         crease_angle_deg: float = DEFAULT_CREASE_ANGLE_DEG) -> AspectGraph:
+    """Compile the aspect graph of a part: a STEP file, or a PLY, STL or OBJ mesh whose
+    length ``units`` (``mesh.UNITS``) must be given.
 
     Views: a golden-spiral sphere with neighbours ``step_deg`` apart, or with ``lonlat=K``
     the seed paper's longitude/latitude grid of density K. ``workers`` processes (default:
     one per CPU) each load the STEP file themselves, since OCCT shapes cannot be sent
     between processes. ``chord_tolerance`` and ``min_length`` are fractions of the model
-    diameter (``hidden_lines``). Raises CadError for an unusable STEP file and
-    AspectGraphError when a view cannot be computed.
+    diameter (``hidden_lines``). ``method`` and ``include_smooth`` apply to STEP parts,
+    ``crease_angle_deg`` to meshes (``mesh_lines``). Raises CadError (MeshError) for an
+    unusable model file and AspectGraphError when a view cannot be computed.
 
     With several workers the processes are spawned, so a calling script needs the usual
     ``if __name__ == "__main__":`` guard (the console script and bench have it).
@@ -81,10 +99,18 @@ def compile_aspect_graph(step_path: str | Path, step_deg: float = DEFAULT_STEP_D
     from tqdm import tqdm
 
     step_path = str(step_path)
-    options = dict(method=method, chord_tolerance=chord_tolerance, min_length=min_length,
-                   include_smooth=include_smooth)
-    HiddenLineRemover.check_options(method, chord_tolerance, min_length)
-    part = load_step(step_path)
+    if is_mesh_file(step_path):
+        if include_smooth:
+            raise ValueError("smooth seams (--smooth) exist only in a STEP part's B-Rep, not in a mesh")
+        options = dict(chord_tolerance=chord_tolerance, min_length=min_length, crease_angle_deg=crease_angle_deg)
+        MeshLineRemover.check_options(**options)
+        source = dict(source="mesh", source_units=units)
+    else:
+        options = dict(method=method, chord_tolerance=chord_tolerance, min_length=min_length,
+                       include_smooth=include_smooth)
+        HiddenLineRemover.check_options(method, chord_tolerance, min_length)
+        source = dict(source="step")
+    part, remover = _load(step_path, units)
     directions = lonlat_directions(lonlat) if lonlat is not None else fibonacci_directions(step_deg)
     ups = view_ups(directions)
     rotations = np.array([look_at_rotation(d, u) for d, u in zip(directions, ups)])
@@ -93,13 +119,13 @@ def compile_aspect_graph(step_path: str | Path, step_deg: float = DEFAULT_STEP_D
     tasks = [(i, rotations[i: i + chunk]) for i in range(0, len(rotations), chunk)]
     views = []
     with tqdm(total=len(rotations), unit="view", disable=not progress, desc=Path(step_path).name) as bar:
-        for batch in _run(part, step_path, tasks, options, workers):
+        for batch in _run(part, remover, step_path, units, tasks, options, workers):
             views.extend(batch)
             bar.update(len(batch))
     params = dict(units="m", projection="orthographic", up="geometry.default_up",
                   sampling="lonlat" if lonlat is not None else "fibonacci",
                   step_deg=None if lonlat is not None else float(step_deg), lonlat=lonlat,
-                  kinds=list(KIND_NAMES), step_file=Path(step_path).name, **options)
+                  kinds=list(KIND_NAMES), step_file=Path(step_path).name, **source, **options)
     return _assemble(part, params, directions, rotations, views)
 
 

@@ -104,23 +104,38 @@ class HiddenLineRemover:
             # PolyAlgo refines outlines on the exact surface and the candidates are on the
             # mesh: each may be half the chord tolerance off, hence the whole for the lift.
             polylines = self._mesh.visible_polylines(rotation, self.include_smooth, self.chord, self.same_point)
-        return self._sections(polylines, rotation)
+        return line_sections(polylines, rotation, self.part.center, self.chord, self.same_point, self.min_length)
 
-    def _sections(self, polylines: list[tuple[np.ndarray, int]], rotation: np.ndarray) -> ViewSegments:
-        """Chain, simplify in 2D and cut into sections; drop the short ones."""
-        segments, kinds = [], []
-        for kind in (SHARP, OUTLINE, SMOOTH):
-            for line in _chain([p for p, k in polylines if k == kind], self.same_point):
-                xy = view_coordinates(line, rotation, self.part.center)
-                keep = _simplify(xy, self.chord / 2.0)
-                segments.append(np.stack([line[keep[:-1]], line[keep[1:]]], axis=1))
-                kinds.append(np.full(len(keep) - 1, kind, dtype=np.uint8))
-        if not segments:
-            return ViewSegments(np.zeros((0, 2, 3)), np.zeros(0, dtype=np.uint8))
-        segments, kinds = np.concatenate(segments), np.concatenate(kinds)
-        xy = view_coordinates(segments, rotation, self.part.center)
-        long_enough = np.linalg.norm(xy[:, 1] - xy[:, 0], axis=1) >= self.min_length
-        return ViewSegments(segments[long_enough], kinds[long_enough])
+
+def line_sections(polylines: list[tuple[np.ndarray, int]], rotation: np.ndarray, center: np.ndarray,
+                  chord: float, same_point: float, min_length: float,
+                  min_chain_length: float = 0.0, loops_from_corners: bool = False) -> ViewSegments:
+    """Visible 3D polylines with their kind -> line sections: chained per kind, simplified
+    in 2D at half the chord tolerance and cut into sections; chains shorter than
+    ``min_chain_length`` and sections shorter than ``min_length`` (view plane, metres) dropped.
+
+    A closed chain keeps its start as a section end. B-Rep edges start at vertices, so it
+    is a corner; pieces of a mesh crease may start anywhere, and ``loops_from_corners``
+    turns each closed chain to start at its sharpest turn in the view.
+    """
+    segments, kinds = [], []
+    for kind in (SHARP, OUTLINE, SMOOTH):
+        for line in _chain([p for p, k in polylines if k == kind], same_point):
+            xy = view_coordinates(line, rotation, center)
+            if loops_from_corners and len(line) > 3 and np.linalg.norm(line[-1] - line[0]) <= same_point:
+                k = _sharpest_turn(xy)
+                line, xy = (np.concatenate([a[k:-1], a[:k + 1]]) for a in (line, xy))
+            if min_chain_length > 0 and np.linalg.norm(np.diff(xy, axis=0), axis=1).sum() < min_chain_length:
+                continue
+            keep = _simplify(xy, chord / 2.0)
+            segments.append(np.stack([line[keep[:-1]], line[keep[1:]]], axis=1))
+            kinds.append(np.full(len(keep) - 1, kind, dtype=np.uint8))
+    if not segments:
+        return ViewSegments(np.zeros((0, 2, 3)), np.zeros(0, dtype=np.uint8))
+    segments, kinds = np.concatenate(segments), np.concatenate(kinds)
+    xy = view_coordinates(segments, rotation, center)
+    long_enough = np.linalg.norm(xy[:, 1] - xy[:, 0], axis=1) >= min_length
+    return ViewSegments(segments[long_enough], kinds[long_enough])
 
 
 def _projector(rotation: np.ndarray):
@@ -411,6 +426,15 @@ def _chain(polylines: list[np.ndarray], same_point: float) -> list[np.ndarray]:
             line, side = other // 2, other % 2
         chains.append(np.concatenate(parts))
     return chains
+
+
+def _sharpest_turn(loop: np.ndarray) -> int:
+    """Index of the vertex where a closed 2D polyline (last point = first) turns most."""
+    points = loop[:-1]
+    incoming, outgoing = points - np.roll(points, 1, axis=0), np.roll(points, -1, axis=0) - points
+    cosine = np.einsum("ij,ij->i", incoming, outgoing) / np.maximum(
+        np.linalg.norm(incoming, axis=1) * np.linalg.norm(outgoing, axis=1), 1e-300)
+    return int(np.argmin(cosine))
 
 
 def _simplify(xy: np.ndarray, tolerance: float) -> np.ndarray:
