@@ -39,7 +39,7 @@ setup(
             "ros-kilted-diagnostic-msgs",
             "ros-kilted-visualization-msgs",
         ],
-        "compile": ["cadquery>=2.4", "matplotlib>=3.7"],
+        "compile": ["cadquery>=2.4", "trimesh>=4", "matplotlib>=3.7"],
         "test": ["pytest>=7"],
     },
     zip_safe=True,
