@@ -15,21 +15,29 @@ estimate and per image (all its targets, one after the other).
 
 Diagnostics of what real light does to the method, per target:
 
-* ``truth``: the estimator's score (the F-measure of ``pose.EdgeEvidence``'s support and
-  explained shares on the Canny edge pixels) of the ground-truth pose. When a wrong
-  estimate scores higher, the score is fooled; when the truth scores higher, the search
-  missed it.
+* ``truth``: the estimator's score (``scoring.pose_scores``: the F-measure of the support
+  and explained shares of ``EdgeEvidence`` on the Canny edge pixels) of the ground-truth
+  pose. When a wrong estimate scores higher, the score is fooled; when the truth scores
+  higher, the search missed it.
 * ``support grey / colour``: the share of the projected model edges at the true pose that
   the grey image's Canny edges confirm, and that an edge in any of the three colour
   channels would.
 * ``size``: the diagonal of the projected part's bounding box, pixels.
 
+``--light`` adds what the photos themselves show, from the true poses of all 8 objects
+rendered into a label image (``synthetic.render.rasterize``): per object the share of
+saturated pixels (a highlight: a channel at 250 or more) inside its visible silhouette,
+and the contrast across that silhouette (mean inside minus mean outside, in a 3 px band)
+in grey and in the colour channel where it is largest; per image the Canny high threshold
+the edge stage chose from the image's own gradient statistics.
+
 ``--crop`` hands the estimator the ground-truth region instead (the visible bounding box
 grown to twice its size, at least 160 px): an oracle for detection, measuring matching
-and pose alone. ``--min-margin-px`` sets ``pose.EdgeEvidence.MIN_MARGIN_PX`` for the run
-(it is a class constant, not a parameter, yet): the floor of the margin around a pose
-inside which the score counts unexplained edge pixels. ``--overlays N`` writes N successes and N failures per object as PNGs to
-data/bench/real_lmo/overlays/ (estimate green or red, truth blue).
+and pose alone. ``--min-margin-px`` sets ``scoring.EdgeEvidence.MIN_MARGIN_PX`` for the
+run (a class constant, not a parameter, yet): the floor of the margin around a pose inside
+which the score counts unexplained edge pixels. ``--overlays N`` writes N successes and N
+failures per object as PNGs to data/bench/real_lmo/overlays/ (estimate green or red,
+truth blue).
 """
 from __future__ import annotations
 
@@ -42,6 +50,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import trimesh
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -50,13 +59,15 @@ from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.camera import Camera  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints  # noqa: E402
 from brepose_ros.evaluation.overlay import draw_overlay, draw_segments  # noqa: E402
-from brepose_ros.geometry import direction_to  # noqa: E402
+from brepose_ros.offline.cad import Mesh  # noqa: E402
 from brepose_ros.offline.compiler import compile_aspect_graph  # noqa: E402
 from brepose_ros.offline.mesh import load_mesh  # noqa: E402
-from brepose_ros.online import pose  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
-from brepose_ros.online.image_edges import detect_edges  # noqa: E402
+from brepose_ros.online.frame import Frame  # noqa: E402
+from brepose_ros.online.image_edges import canny_thresholds, detect_edges, to_gray  # noqa: E402
+from brepose_ros.online.scoring import EdgeEvidence, pose_scores  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
+from brepose_ros.synthetic.render import Placed, rasterize  # noqa: E402
 
 LMO = REPO.parent / "shared" / "data" / "real" / "lmo_test_000002"
 OUT = REPO / "data" / "bench" / "real_lmo"
@@ -67,6 +78,8 @@ WELL_VISIBLE = 0.8
 ADD_THRESHOLD = 0.1
 #: the oracle crop: the visible box grown by this factor about its centre, at least this wide
 CROP_GROWTH, CROP_MIN_PX = 2.0, 160
+#: overlay colours (BGR): the true pose's edges, the estimate's when correct and when not
+TRUTH_COLOUR, CORRECT_COLOUR, WRONG_COLOUR = (255, 128, 0), (0, 220, 0), (0, 0, 255)
 #: published RGB-only results on the whole LM-O test set (the issue's comparison)
 PUBLISHED = [("PVNet (trained on LM), ADD(-S) recall", "40.8 %"),
              ("DPOD (trained on LM), ADD(-S) recall", "47.3 %"),
@@ -109,35 +122,27 @@ def graph_of(obj: int, step_deg: float) -> AspectGraph:
     return AspectGraph.load(path, step_path=mesh)
 
 
-def crop(image: np.ndarray, camera: Camera, box) -> tuple[np.ndarray, Camera, np.ndarray]:
-    """The image inside the grown box, its camera and the crop's offset (x, y)."""
+def crop(image: np.ndarray, camera: Camera, box) -> tuple[np.ndarray, Camera]:
+    """The image inside the grown box and the camera that sees just that."""
     x, y, w, h = box
     center, half = np.array([x + w / 2, y + h / 2]), max(CROP_GROWTH * max(w, h), CROP_MIN_PX) / 2
     x0, y0 = np.clip(np.floor(center - half).astype(int), 0, [camera.width - 1, camera.height - 1])
     x1, y1 = np.clip(np.ceil(center + half).astype(int), [x0 + 1, y0 + 1], [camera.width, camera.height])
     inner = Camera(camera.fx, camera.fy, camera.cx - x0, camera.cy - y0, int(x1 - x0), int(y1 - y0),
                    camera.distortion)
-    return image[y0:y1, x0:x1], inner, np.array([x0, y0])
-
-
-def view_segments(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """3D sections of the graph view nearest to the pose's viewing direction."""
-    view = int(np.argmax(graph.view_directions @ direction_to(graph.model_center, R, t)))
-    return graph.seg_3d[graph.view_slice(view)]
-
-
-def pose_score(evidence: pose.EdgeEvidence, model_px: np.ndarray, tolerance: float) -> tuple[float, float, float]:
-    """Support, explained share and their F-measure, as the estimator scores a pose."""
-    support = evidence.support(model_px, tolerance)
-    explained = evidence.explained(model_px, tolerance)
-    return support, explained, 2 * support * explained / max(support + explained, 1e-12)
+    return np.ascontiguousarray(image[y0:y1, x0:x1]), inner
 
 
 def colour_support(image: np.ndarray, model_px: np.ndarray, params, tolerance: float) -> float:
     """Support of the projected model edges by Canny edges of any colour channel."""
     channels = [detect_edges(np.ascontiguousarray(image[:, :, c]), params) for c in range(3)]
     edge_map = np.maximum.reduce([c.edge_map for c in channels])
-    return pose.EdgeEvidence(edge_map, channels[0].gray).support(model_px, tolerance)
+    return support(EdgeEvidence(edge_map, channels[0].gray), model_px, tolerance)
+
+
+def support(evidence: EdgeEvidence, model_px: np.ndarray, tolerance: float) -> float:
+    """Share of one pose's projected model edges (K, 2, 2) that edge pixels confirm."""
+    return float(evidence.supports(model_px, np.array([0, len(model_px)]), tolerance)[0])
 
 
 def main(argv=None) -> int:
@@ -149,9 +154,10 @@ def main(argv=None) -> int:
     parser.add_argument("--overlays", type=int, default=3, help="successes and failures saved per object")
     parser.add_argument("--frames", type=int, help="only the first N frames (quick runs)")
     parser.add_argument("--min-margin-px", type=float, help="the score's margin floor (default: the estimator's)")
+    parser.add_argument("--light", action="store_true", help="also highlights, contrast and Canny thresholds")
     args = parser.parse_args(argv)
     if args.min_margin_px is not None:
-        pose.EdgeEvidence.MIN_MARGIN_PX = args.min_margin_px
+        EdgeEvidence.MIN_MARGIN_PX = args.min_margin_px
     if not LMO.is_dir():
         print(f"error: {LMO} is not there (../shared beside the clone)", file=sys.stderr)
         return 2
@@ -162,8 +168,7 @@ def main(argv=None) -> int:
     targets = load_targets(LMO)
     frames = sorted({t.frame for t in targets})[: args.frames]
     images = {f: cv2.imread(str(LMO / "rgb" / f"{f:06d}.png"), cv2.IMREAD_COLOR) for f in frames}
-    edges = {f: detect_edges(images[f], params.edges) for f in frames}
-    evidence = {f: pose.EdgeEvidence(edges[f].edge_map, edges[f].gray) for f in frames}
+    frame_of = {f: Frame.of(detect_edges(images[f], params.edges), camera) for f in frames}
     tolerance = params.pose.inlier_pixels
     overlays = OUT / ("overlays_crop" if args.crop else "overlays")
     overlays.mkdir(parents=True, exist_ok=True)
@@ -177,26 +182,32 @@ def main(argv=None) -> int:
         estimator = Estimator(graph, params)
         saved = {True: 0, False: 0}
         for target in (t for t in targets if t.obj == obj and t.frame in images):
-            image, cam, offset = images[target.frame], camera, np.zeros(2)
+            image, cam = images[target.frame], camera
             if args.crop:
-                image, cam, offset = crop(image, camera, target.box)
+                image, cam = crop(image, camera, target.box)
             started = time.perf_counter()
             estimate = estimator.estimate(image, cam)
             seconds = time.perf_counter() - started
             distance = (model.add_s if symmetric else model.add)(estimate.R, estimate.t, target.R, target.t)
             error = distance * model.diameter / diameter
-            truth_px = pose.project_pixels(view_segments(graph, target.R, target.t), target.R, target.t, camera)
-            support, explained, truth = pose_score(evidence[target.frame], truth_px, tolerance)
+            # the truth scored on what the estimator saw: the whole image or the crop
+            seen = Frame.of(detect_edges(image, params.edges), cam) if args.crop else frame_of[target.frame]
+            truth_px = cam.project_model(graph.seg_3d[graph.visible_segments(target.R, target.t)], target.R, target.t)
+            truth = float(pose_scores(graph, target.R[None], target.t[None], seen, params.pose)[0])
             size = float(np.hypot(*np.ptp(truth_px.reshape(-1, 2), axis=0)))
             rows.append(dict(obj=obj, frame=target.frame, visible=target.visible, error=error,
                              correct=error < ADD_THRESHOLD, score=estimate.score, truth=truth,
-                             support=support, explained=explained, size=size, seconds=seconds,
-                             colour_support=colour_support(images[target.frame], truth_px, params.edges, tolerance)))
+                             support=support(seen.evidence, truth_px, tolerance),
+                             explained=seen.evidence.explained(truth_px, tolerance), size=size, seconds=seconds,
+                             colour_support=colour_support(image, truth_px, params.edges, tolerance)))
             correct = rows[-1]["correct"]
             if saved[correct] < args.overlays:
                 saved[correct] += 1
                 picture = draw_overlay(image, estimate, f"{NAMES[obj]} {target.frame}")
-                draw_segments(picture, truth_px - offset, (255, 128, 0), 1)
+                estimated_px = cam.project_model(graph.seg_3d[graph.visible_segments(estimate.R, estimate.t)],
+                                                 estimate.R, estimate.t)
+                draw_segments(picture, truth_px, TRUTH_COLOUR, 1)
+                draw_segments(picture, estimated_px, CORRECT_COLOUR if correct else WRONG_COLOUR, 1)
                 name = f"{NAMES[obj]}_{target.frame:06d}_{'ok' if correct else 'fail'}.png"
                 cv2.imwrite(str(overlays / name), picture)
             print(f"{NAMES[obj]:12s} {target.frame:5d} vis {target.visible:.2f} size {size:4.0f} px  "
@@ -204,6 +215,8 @@ def main(argv=None) -> int:
                   file=sys.stderr, flush=True)
         estimator.close()
     report(rows, args)
+    if args.light:
+        light_report(targets, images, camera, params, args.objects)
     (OUT / ("results_crop.json" if args.crop else "results.json")).write_text(json.dumps(rows, indent=1))
     return 0
 
@@ -217,7 +230,7 @@ def report(rows: list[dict], args) -> None:
 
     mode = "oracle crop" if args.crop else "whole image"
     mode += f", params {args.params}" if args.params else ""
-    mode += f", margin floor {pose.EdgeEvidence.MIN_MARGIN_PX:g} px"
+    mode += f", margin floor {EdgeEvidence.MIN_MARGIN_PX:g} px"
     print(f"\nLM-O test scene 2, {len(rows)} BOP19 targets in {len({r['frame'] for r in rows})} frames, "
           f"{mode}, {args.step_deg:g} deg views")
     print("| object | ADD(-S) recall | visible >= 0.8 | visible < 0.8 | median size px | median score "
@@ -239,6 +252,44 @@ def report(rows: list[dict], args) -> None:
           f"per estimate: median {np.median([r['seconds'] for r in rows]):.2f} s")
     print("published RGB-only figures on the whole LM-O test set: " +
           "; ".join(f"{name} {value}" for name, value in PUBLISHED))
+
+
+def light_report(targets: list[Target], images: dict, camera: Camera, params, objects) -> None:
+    """Highlights and silhouette contrast per object, Canny thresholds per image (``--light``)."""
+    meshes = {}
+    for obj in NAMES:
+        part = load_mesh(LMO / "models" / f"obj_{obj:06d}.ply", "mm")
+        normals = trimesh.Trimesh(part.vertices, part.triangles, process=False).vertex_normals
+        meshes[obj] = Mesh(part.vertices, part.triangles, normals)
+    band = np.ones((7, 7), np.uint8)  # 3 px either side of the silhouette
+    stats = {obj: [] for obj in objects}
+    for frame, image in images.items():
+        here = [t for t in targets if t.frame == frame]
+        labels = rasterize(camera, [Placed(meshes[t.obj], t.R, t.t) for t in here]).labels
+        grey = to_gray(image)
+        for k, target in enumerate(here):
+            mask = (labels == k).astype(np.uint8)
+            if target.obj not in stats or mask.sum() < 20:
+                continue
+            inside = (mask > 0) & (cv2.erode(mask, band) == 0)
+            outside = (cv2.dilate(mask, band) > 0) & (mask == 0)
+            colour = np.abs(image[inside].mean(axis=0) - image[outside].mean(axis=0))
+            stats[target.obj].append((np.mean(image[mask > 0].max(axis=1) >= 250),
+                                      abs(grey[inside].mean() - grey[outside].mean()), colour.max()))
+    print("\n| object | saturated share in silhouette (median / max) | silhouette contrast grey | colour (best channel) |")
+    print("|---|---|---|---|")
+    for obj, values in stats.items():
+        v = np.array(values)
+        print(f"| {NAMES[obj]} | {np.median(v[:, 0]):.3f} / {v[:, 0].max():.3f} | {np.median(v[:, 1]):.1f} | "
+              f"{np.median(v[:, 2]):.1f} |")
+    highs = []
+    for image in images.values():
+        grey = cv2.GaussianBlur(to_gray(image), (params.edges.blur_size,) * 2, params.edges.blur_sigma)
+        magnitude = cv2.magnitude(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
+        highs.append(canny_thresholds(magnitude, params.edges)[1])
+    print(f"\nCanny high threshold (Sobel magnitude, 0..255 grey): median {np.median(highs):.1f}, "
+          f"range {min(highs):.1f}-{max(highs):.1f}; the floor for noise-free renders is "
+          f"{params.edges.canny_min_high:g}")
 
 
 if __name__ == "__main__":

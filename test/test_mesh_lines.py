@@ -12,15 +12,15 @@ from scipy.spatial import cKDTree
 
 from brepose_ros.aspect_graph import AspectGraph, AspectGraphError
 from brepose_ros.camera import Camera
-from brepose_ros.geometry import direction_to, look_at_rotation, normalize, rotation_angle_deg
+from brepose_ros.geometry import look_at_rotation, normalize, rotation_angle_deg
 from brepose_ros.offline.cad import Mesh, load_step, tessellate
 from brepose_ros.offline.compiler import compile_aspect_graph
 from brepose_ros.offline.hidden_lines import OUTLINE, SHARP, view_coordinates
 from brepose_ros.offline.mesh import load_mesh
 from brepose_ros.offline.mesh_lines import MeshLineRemover
-from brepose_ros.online import pose
 from brepose_ros.online.estimator import Estimator
 from brepose_ros.online.image_edges import detect_edges
+from brepose_ros.online.scoring import EdgeEvidence
 from brepose_ros.synthetic.render import Placed, render
 
 HALF = 0.025  # the test cube is 50 mm, centred on the origin
@@ -208,9 +208,9 @@ def test_lmo_photo_edges_lie_on_the_compiled_mesh_lines(shared_data):
     R, t = np.array(truth["cam_R_m2c"]).reshape(3, 3), np.array(truth["cam_t_m2c"]) / 1000.0
     camera = Camera.load(folder / "camera.json")
     edges = detect_edges(cv2.imread(str(folder / "rgb" / "000079.png")))
-    evidence = pose.EdgeEvidence(edges.edge_map, edges.gray)
-    view = int(np.argmax(graph.view_directions @ direction_to(graph.model_center, R, t)))
-    lines = graph.seg_3d[graph.view_slice(view)]
-    at_truth = evidence.support(pose.project_pixels(lines, R, t, camera), 2.0)
-    off = evidence.support(pose.project_pixels(lines, R, t + [10.0 * t[2] / camera.fx, 0, 0], camera), 2.0)
+    evidence = EdgeEvidence(edges.edge_map, edges.gray)
+    lines = graph.seg_3d[graph.visible_segments(R, t)]
+    one_pose = np.array([0, len(lines)])
+    at_truth = evidence.supports(camera.project_model(lines, R, t), one_pose, 2.0)[0]
+    off = evidence.supports(camera.project_model(lines, R, t + [10.0 * t[2] / camera.fx, 0, 0]), one_pose, 2.0)[0]
     assert at_truth > 0.7 and at_truth > 1.5 * off  # measured: 0.80 and 0.43 (a cluttered desk)
