@@ -37,7 +37,7 @@ and pose alone. ``--min-margin-px`` sets ``scoring.EdgeEvidence.MIN_MARGIN_PX`` 
 run (a class constant, not a parameter, yet): the floor of the margin around a pose inside
 which the score counts unexplained edge pixels. ``--overlays N`` writes N successes and N
 failures per object as PNGs to data/bench/real_lmo/overlays/ (estimate green or red,
-truth blue).
+truth blue); every target's figures go to data/bench/real_lmo/results*.json.
 """
 from __future__ import annotations
 
@@ -217,7 +217,9 @@ def main(argv=None) -> int:
     report(rows, args)
     if args.light:
         light_report(targets, images, camera, params, args.objects)
-    (OUT / ("results_crop.json" if args.crop else "results.json")).write_text(json.dumps(rows, indent=1))
+    run = "".join([f"_{args.params.stem}" if args.params else "", "_crop" if args.crop else "",
+                   f"_margin{args.min_margin_px:g}" if args.min_margin_px is not None else ""])
+    (OUT / f"results{run}.json").write_text(json.dumps(rows, indent=1))
     return 0
 
 

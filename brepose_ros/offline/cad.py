@@ -63,13 +63,7 @@ def load_step(path: str | Path, max_bytes: int = MAX_STEP_BYTES) -> Part:
     from OCP.TopExp import TopExp_Explorer
 
     path = Path(path)
-    if not path.is_file():
-        raise CadError(f"STEP file {path} does not exist")
-    size = path.stat().st_size
-    if size == 0:
-        raise CadError(f"STEP file {path} is empty")
-    if size > max_bytes:
-        raise CadError(f"STEP file {path} is {size / 1e6:.1f} MB, over the limit of {max_bytes / 1e6:.0f} MB")
+    size = checked_size(path, "STEP file", max_bytes, CadError)
     with open(path, "rb") as stream:
         head = stream.read(64)
     if not head.lstrip().startswith(b"ISO-10303-21"):
@@ -100,6 +94,19 @@ def load_step(path: str | Path, max_bytes: int = MAX_STEP_BYTES) -> Part:
     return Part(shape=shape, sha256=file_sha256(path), source=str(path),
                 center=(lo + hi) / 2.0, diameter=float(np.linalg.norm(hi - lo)),
                 n_faces=count(shape, TopAbs_FACE), n_solids=n_solids)
+
+
+def checked_size(path: Path, kind: str, max_bytes: int, error: type[CadError]) -> int:
+    """The size of a model file, or ``error`` naming why it cannot be read: missing, empty
+    or over ``max_bytes`` (checked before any parsing, which could take all memory)."""
+    if not path.is_file():
+        raise error(f"{kind} {path} does not exist")
+    size = path.stat().st_size
+    if size == 0:
+        raise error(f"{kind} {path} is empty")
+    if size > max_bytes:
+        raise error(f"{kind} {path} is {size / 1e6:.1f} MB, over the limit of {max_bytes / 1e6:.0f} MB")
+    return size
 
 
 def solids_of(shape):

@@ -29,7 +29,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from ..aspect_graph import file_sha256
-from .cad import CadError
+from .cad import CadError, checked_size
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 #: metres per unit of the lengths in the file
@@ -85,13 +85,7 @@ def load_mesh(path: str | Path, units: str | None, max_bytes: int = MAX_MESH_BYT
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise MeshError(f"{path} is not a mesh file this reads ({', '.join(MESH_SUFFIXES)})")
-    if not path.is_file():
-        raise MeshError(f"mesh file {path} does not exist")
-    size = path.stat().st_size
-    if size == 0:
-        raise MeshError(f"mesh file {path} is empty")
-    if size > max_bytes:
-        raise MeshError(f"mesh file {path} is {size / 1e6:.1f} MB, over the limit of {max_bytes / 1e6:.0f} MB")
+    size = checked_size(path, "mesh file", max_bytes, MeshError)
     claimed = _check_container(path, suffix[1:], size)
     if claimed is not None and claimed > max_faces:
         raise MeshError(f"mesh {path} has {claimed} triangles, over the limit of {max_faces}; decimate it first")

@@ -67,6 +67,9 @@ MIN_CHAIN_LENGTH = 0.02
 #: diameter: chains are smoothed and outlines interpolated inside triangles, so their
 #: points lie off the surface by a small fraction of a triangle.
 DEPTH_TOLERANCE = 0.005
+#: Average number of grid cells a triangle may be binned into for the depth test: bounds
+#: its memory and time on meshes of long slivers.
+OCCLUDER_ENTRIES = 16
 #: A triangle faces the camera when its normal points towards it by more than this cosine
 #: (a face seen exactly edge-on faces neither way).
 _FRONT_COSINE = 1e-9
@@ -96,8 +99,7 @@ class MeshLineRemover:
         self.crease_segments = _smooth_chains(self.vertices, self.crease_ends)
         self.crease_faces = topology.faces[crease]
         self.corner_region, self.region_normals = _smooth_regions(self.triangles, smoothed, area, topology, crease)
-        self.cell = float(np.clip(2.0 * np.median(np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1)),
-                                  d / 256, d / 16))
+        self.cell = _occluder_cell(corners, d)
 
     @staticmethod
     def check_options(chord_tolerance: float, min_length: float, crease_angle_deg: float) -> None:
@@ -167,7 +169,7 @@ class MeshLineRemover:
         middle = (step + 0.5) / count[owner]
         points = candidates[owner, 0] + middle[:, None] * (candidates[owner, 1] - candidates[owner, 0])
         visible = ~self._hidden(points, own[owner], rotation, front)
-        # runs of consecutive visible pieces of one candidate: [start, stop) in piece steps
+        # runs of consecutive visible pieces of one candidate: steps start..stop, both included
         starts = np.flatnonzero(visible & ~np.r_[False, visible[:-1] & (owner[1:] == owner[:-1])])
         stops = np.flatnonzero(visible & ~np.r_[visible[1:] & (owner[1:] == owner[:-1]), False])
         c = owner[starts]
@@ -228,6 +230,19 @@ class MeshLineRemover:
         hidden = np.zeros(len(p), dtype=bool)
         hidden[pair_point[covers]] = True
         return hidden
+
+
+def _occluder_cell(corners: np.ndarray, diameter: float) -> float:
+    """Side of the grid cells the depth test bins triangles on: twice the median edge, so
+    that a point meets a few dozen triangles, but coarse enough that long slivers (CAD
+    exports) do not fill the grid: at most ``OCCLUDER_ENTRIES`` cells per triangle on
+    average (estimated from the triangles' 3D extents)."""
+    extent = np.ptp(corners, axis=1).max(axis=1)
+    cell = float(np.clip(2.0 * np.median(np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1)),
+                         diameter / 256, diameter / 16))
+    while np.mean((extent / cell + 1.0) ** 2) > OCCLUDER_ENTRIES and cell < diameter:
+        cell *= 1.5
+    return cell
 
 
 def _smoothed_normals(normals: np.ndarray, area: np.ndarray, topology) -> np.ndarray:
