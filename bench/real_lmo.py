@@ -31,6 +31,10 @@ and the contrast across that silhouette (mean inside minus mean outside, in a 3 
 in grey and in the colour channel where it is largest; per image the Canny high threshold
 the edge stage chose from the image's own gradient statistics.
 
+``--render`` replaces every photo by a rendering of the 8 objects at their true poses
+(``synthetic.render``: grey metal, two lights, a flat dark background): the same poses,
+sizes and mutual occlusions without real light, clutter or sensor, as the control.
+
 ``--crop`` hands the estimator the ground-truth region instead (the visible bounding box
 grown to twice its size, at least 160 px): an oracle for detection, measuring matching
 and pose alone. ``--min-margin-px`` sets ``scoring.EdgeEvidence.MIN_MARGIN_PX`` for the
@@ -67,7 +71,7 @@ from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.image_edges import canny_thresholds, detect_edges, to_gray  # noqa: E402
 from brepose_ros.online.scoring import EdgeEvidence, pose_scores  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
-from brepose_ros.synthetic.render import Placed, rasterize  # noqa: E402
+from brepose_ros.synthetic.render import Placed, rasterize, render  # noqa: E402
 
 LMO = REPO.parent / "shared" / "data" / "real" / "lmo_test_000002"
 OUT = REPO / "data" / "bench" / "real_lmo"
@@ -78,6 +82,8 @@ WELL_VISIBLE = 0.8
 ADD_THRESHOLD = 0.1
 #: the oracle crop: the visible box grown by this factor about its centre, at least this wide
 CROP_GROWTH, CROP_MIN_PX = 2.0, 160
+#: grey level behind the rendered objects (``--render``)
+RENDER_BACKGROUND = 40.0
 #: overlay colours (BGR): the true pose's edges, the estimate's when correct and when not
 TRUTH_COLOUR, CORRECT_COLOUR, WRONG_COLOUR = (255, 128, 0), (0, 220, 0), (0, 0, 255)
 #: published RGB-only results on the whole LM-O test set (the issue's comparison)
@@ -155,6 +161,7 @@ def main(argv=None) -> int:
     parser.add_argument("--frames", type=int, help="only the first N frames (quick runs)")
     parser.add_argument("--min-margin-px", type=float, help="the score's margin floor (default: the estimator's)")
     parser.add_argument("--light", action="store_true", help="also highlights, contrast and Canny thresholds")
+    parser.add_argument("--render", action="store_true", help="renderings of the true poses instead of the photos")
     args = parser.parse_args(argv)
     if args.min_margin_px is not None:
         EdgeEvidence.MIN_MARGIN_PX = args.min_margin_px
@@ -168,9 +175,13 @@ def main(argv=None) -> int:
     targets = load_targets(LMO)
     frames = sorted({t.frame for t in targets})[: args.frames]
     images = {f: cv2.imread(str(LMO / "rgb" / f"{f:06d}.png"), cv2.IMREAD_COLOR) for f in frames}
+    meshes = scene_meshes()
+    if args.render:
+        images = {f: render(camera, [Placed(meshes[t.obj], t.R, t.t) for t in targets if t.frame == f],
+                            background=RENDER_BACKGROUND, color=True).image for f in frames}
     frame_of = {f: Frame.of(detect_edges(images[f], params.edges), camera) for f in frames}
     tolerance = params.pose.inlier_pixels
-    overlays = OUT / ("overlays_crop" if args.crop else "overlays")
+    overlays = OUT / ("overlays" + ("_render" if args.render else "") + ("_crop" if args.crop else ""))
     overlays.mkdir(parents=True, exist_ok=True)
     rows = []
     for obj in args.objects:
@@ -216,8 +227,9 @@ def main(argv=None) -> int:
         estimator.close()
     report(rows, args)
     if args.light:
-        light_report(targets, images, camera, params, args.objects)
+        light_report(targets, images, meshes, camera, params, args.objects)
     run = "".join([f"_{args.params.stem}" if args.params else "", "_crop" if args.crop else "",
+                   "_render" if args.render else "",
                    f"_margin{args.min_margin_px:g}" if args.min_margin_px is not None else ""])
     (OUT / f"results{run}.json").write_text(json.dumps(rows, indent=1))
     return 0
@@ -230,7 +242,7 @@ def report(rows: list[dict], args) -> None:
     def median(selected, key, scale=1.0, digits=2):
         return f"{scale * np.median([r[key] for r in selected]):.{digits}f}" if selected else "-"
 
-    mode = "oracle crop" if args.crop else "whole image"
+    mode = ("renderings" if args.render else "photos") + (", oracle crop" if args.crop else ", whole image")
     mode += f", params {args.params}" if args.params else ""
     mode += f", margin floor {EdgeEvidence.MIN_MARGIN_PX:g} px"
     print(f"\nLM-O test scene 2, {len(rows)} BOP19 targets in {len({r['frame'] for r in rows})} frames, "
@@ -256,13 +268,18 @@ def report(rows: list[dict], args) -> None:
           "; ".join(f"{name} {value}" for name, value in PUBLISHED))
 
 
-def light_report(targets: list[Target], images: dict, camera: Camera, params, objects) -> None:
-    """Highlights and silhouette contrast per object, Canny thresholds per image (``--light``)."""
+def scene_meshes() -> dict[int, Mesh]:
+    """The 8 objects' meshes in metres with smooth vertex normals, for rendering."""
     meshes = {}
     for obj in NAMES:
         part = load_mesh(LMO / "models" / f"obj_{obj:06d}.ply", "mm")
         normals = trimesh.Trimesh(part.vertices, part.triangles, process=False).vertex_normals
         meshes[obj] = Mesh(part.vertices, part.triangles, normals)
+    return meshes
+
+
+def light_report(targets: list[Target], images: dict, meshes: dict, camera: Camera, params, objects) -> None:
+    """Highlights and silhouette contrast per object, Canny thresholds per image (``--light``)."""
     band = np.ones((7, 7), np.uint8)  # 3 px either side of the silhouette
     stats = {obj: [] for obj in objects}
     for frame, image in images.items():
