@@ -295,7 +295,8 @@ def light_report(targets: list[Target], images: dict, meshes: dict, camera: Came
             colour = np.abs(image[inside].mean(axis=0) - image[outside].mean(axis=0))
             stats[target.obj].append((np.mean(image[mask > 0].max(axis=1) >= 250),
                                       abs(grey[inside].mean() - grey[outside].mean()), colour.max()))
-    print("\n| object | saturated share in silhouette (median / max) | silhouette contrast grey | colour (best channel) |")
+    print("\n| object | saturated share in silhouette (median / max) | silhouette contrast grey "
+          "| colour (best channel) |")
     print("|---|---|---|---|")
     for obj, values in stats.items():
         v = np.array(values)

@@ -6,9 +6,11 @@ import struct
 
 import numpy as np
 import pytest
-import trimesh
 
 from brepose_ros.offline.mesh import MeshError, edge_topology, load_mesh
+
+trimesh = pytest.importorskip("trimesh")  # the [compile] extra
+pytestmark = pytest.mark.cad
 
 
 def cube(size=0.05, offset=(0.0, 0.0, 0.0)) -> trimesh.Trimesh:

@@ -7,7 +7,6 @@ import json
 import cv2
 import numpy as np
 import pytest
-import trimesh
 from scipy.spatial import cKDTree
 
 from brepose_ros.aspect_graph import AspectGraph, AspectGraphError
@@ -22,6 +21,9 @@ from brepose_ros.online.estimator import Estimator
 from brepose_ros.online.image_edges import detect_edges
 from brepose_ros.online.scoring import EdgeEvidence
 from brepose_ros.synthetic.render import Placed, render
+
+trimesh = pytest.importorskip("trimesh")  # the [compile] extra
+pytestmark = pytest.mark.cad
 
 HALF = 0.025  # the test cube is 50 mm, centred on the origin
 CORNERS = np.array([[x, y, z] for x in (-HALF, HALF) for y in (-HALF, HALF) for z in (-HALF, HALF)])
@@ -141,7 +143,8 @@ def test_mesh_graph_is_the_checked_format_and_records_its_source(cylinder_graph,
     assert graph.params["source"] == "mesh" and graph.params["source_units"] == "mm"
     assert graph.params["units"] == "m" and graph.n_faces == 256
     assert np.diff(graph.seg_offsets).min() >= 3
-    assert np.allclose(graph.model_center, 0.0) and graph.model_diameter == pytest.approx(np.sqrt(0.04 ** 2 * 2 + 0.05 ** 2), rel=1e-3)
+    assert np.allclose(graph.model_center, 0.0)
+    assert graph.model_diameter == pytest.approx(np.sqrt(0.04 ** 2 * 2 + 0.05 ** 2), rel=1e-3)
     loaded = AspectGraph.load(graph.save(tmp_path / "cylinder.brepose.npz"), step_path=cylinder_stl)
     for name, array in graph.arrays().items():
         assert np.array_equal(array, getattr(loaded, name)), name
@@ -149,6 +152,7 @@ def test_mesh_graph_is_the_checked_format_and_records_its_source(cylinder_graph,
         AspectGraph.load(tmp_path / "cylinder.brepose.npz", step_path=cube_ply)
 
 
+@pytest.mark.slow
 def test_parallel_mesh_compile_gives_the_same_graph(cylinder_graph, cylinder_stl):
     parallel = compile_aspect_graph(cylinder_stl, step_deg=30.0, workers=2, progress=False, units="mm")
     for name, array in cylinder_graph.arrays().items():
@@ -183,6 +187,7 @@ def bracket_mesh(builtin_step, tmp_path_factory):
     return path, mesh
 
 
+@pytest.mark.slow
 def test_estimator_finds_a_rendered_mesh_part_from_its_mesh_graph(bracket_mesh):
     path, mesh = bracket_mesh
     graph = compile_aspect_graph(path, step_deg=10.0, workers=2, progress=False, units="mm")
@@ -198,6 +203,7 @@ def test_estimator_finds_a_rendered_mesh_part_from_its_mesh_graph(bracket_mesh):
     assert np.linalg.norm(estimate.t - t) < 0.03 * graph.model_diameter
 
 
+@pytest.mark.slow
 def test_lmo_photo_edges_lie_on_the_compiled_mesh_lines(shared_data):
     """One real LM-O frame end to end: the ape's scanned mesh (mm) compiles, and at the
     true pose its lines fall on the photo's edges, far more than at a pose 10 px off."""

@@ -55,11 +55,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=positive_int, help="processes (default: one per CPU)")
     p.add_argument("--smooth", action="store_true", help="also keep smooth tangent seams (Rg1 lines)")
     p.add_argument("--method", choices=METHODS,
-                   help=f"STEP only: hidden-line removal on the B-Rep (exact) or its mesh (poly); default {DEFAULT_METHOD}")
+                   help="STEP only: hidden-line removal on the B-Rep (exact) or its mesh (poly); "
+                        f"default {DEFAULT_METHOD}")
     p.add_argument("--crease-angle", type=positive_float, default=DEFAULT_CREASE_ANGLE_DEG, metavar="DEG",
-                   help=f"meshes only: dihedral angle above which an edge is a crease (default {DEFAULT_CREASE_ANGLE_DEG:g})")
+                   help="meshes only: dihedral angle above which an edge is a crease "
+                        f"(default {DEFAULT_CREASE_ANGLE_DEG:g})")
     p.add_argument("--chord-tolerance", type=positive_float, default=DEFAULT_CHORD_TOLERANCE,
-                   help=f"largest 2D error of a line section, fraction of the diameter (default {DEFAULT_CHORD_TOLERANCE})")
+                   help="largest 2D error of a line section, fraction of the diameter "
+                        f"(default {DEFAULT_CHORD_TOLERANCE})")
     p.add_argument("--min-length", type=non_negative_float, default=DEFAULT_MIN_LENGTH,
                    help=f"shortest kept section, fraction of the diameter (default {DEFAULT_MIN_LENGTH})")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

@@ -50,7 +50,8 @@ def _visible_in_worker(task):
     return _visible(_remover, task)
 
 
-def _visible(remover: HiddenLineRemover | MeshLineRemover, task: tuple[int, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+def _visible(remover: HiddenLineRemover | MeshLineRemover,
+             task: tuple[int, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
     """3D sections and kinds of a run of views (index of the first, their rotations)."""
     first, rotations = task
     results = []
