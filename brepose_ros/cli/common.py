@@ -16,8 +16,9 @@ from ..offline.cad import CadError
 
 #: errors that are the user's input, not a bug: print the message, exit 2
 USER_ERRORS = (AspectGraphError, CadError, CameraError, OSError, ValueError)
-#: top-level modules of the CAD stack, which a robot install (no ``[compile]`` extra) lacks
-CAD_MODULES = ("cadquery", "OCP")
+#: top-level modules of the CAD stack and the mesh reader, which a robot install (no ``[compile]``
+#: extra) lacks
+CAD_MODULES = ("cadquery", "OCP", "trimesh")
 
 
 class ArgumentParser(argparse.ArgumentParser):
