@@ -143,7 +143,11 @@ def colour_support(image: np.ndarray, model_px: np.ndarray, params, tolerance: f
     """Support of the projected model edges by Canny edges of any colour channel."""
     channels = [detect_edges(np.ascontiguousarray(image[:, :, c]), params) for c in range(3)]
     edge_map = np.maximum.reduce([c.edge_map for c in channels])
-    return support(EdgeEvidence(edge_map, channels[0].gray), model_px, tolerance)
+    # each pixel's direction from the channel whose gradient is strongest there
+    gx, gy = (np.stack([getattr(c, name) for c in channels]) for name in ("gradient_x", "gradient_y"))
+    strongest = np.argmax(gx * gx + gy * gy, axis=0)[None]
+    gx, gy = (np.take_along_axis(g, strongest, axis=0)[0] for g in (gx, gy))
+    return support(EdgeEvidence(edge_map, gx, gy), model_px, tolerance)
 
 
 def support(evidence: EdgeEvidence, model_px: np.ndarray, tolerance: float) -> float:

@@ -214,7 +214,7 @@ def test_lmo_photo_edges_lie_on_the_compiled_mesh_lines(shared_data):
     R, t = np.array(truth["cam_R_m2c"]).reshape(3, 3), np.array(truth["cam_t_m2c"]) / 1000.0
     camera = Camera.load(folder / "camera.json")
     edges = detect_edges(cv2.imread(str(folder / "rgb" / "000079.png")))
-    evidence = EdgeEvidence(edges.edge_map, edges.gray)
+    evidence = EdgeEvidence(edges.edge_map, edges.gradient_x, edges.gradient_y)
     lines = graph.seg_3d[graph.visible_segments(R, t)]
     one_pose = np.array([0, len(lines)])
     at_truth = evidence.supports(camera.project_model(lines, R, t), one_pose, 2.0)[0]
