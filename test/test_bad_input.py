@@ -194,11 +194,16 @@ COMMAND_CASES = [
     ("step-directory", compile_cli, lambda g, t: [str(t)], "does not exist"),
     ("step-oversized", compile_cli,
      lambda g, t: [str(write(t, "big.step", b"ISO-10303-21;" + bytes(65 * 2**20)))], "over the limit"),
-    # meshes: brepose-compile reads STEP only on this branch (issue 13 adds meshes)
-    ("mesh-stl", compile_cli, lambda g, t: [str(write(t, "p.stl", "solid p\nendsolid p\n"))], "not a STEP file"),
-    ("mesh-ply", compile_cli, lambda g, t: [str(write(t, "p.ply", "ply\nformat ascii 1.0\nend_header\n"))],
-     "not a STEP file"),
-    ("mesh-obj", compile_cli, lambda g, t: [str(write(t, "p.obj", "v 0 0 0\n"))], "not a STEP file"),
+    # meshes: a unit is required, and a mesh without triangles is refused (test_mesh.py has the rest)
+    ("mesh-no-units", compile_cli, lambda g, t: [str(write(t, "u.stl", "solid p\nendsolid p\n"))],
+     "give its length unit with --units"),
+    ("mesh-stl", compile_cli, lambda g, t: [str(write(t, "p.stl", "solid p\nendsolid p\n")), "--units", "mm"],
+     "holds no triangles"),
+    ("mesh-ply", compile_cli,
+     lambda g, t: [str(write(t, "p.ply", "ply\nformat ascii 1.0\nend_header\n")), "--units", "mm"],
+     "holds no triangles"),
+    ("mesh-obj", compile_cli, lambda g, t: [str(write(t, "p.obj", "v 0 0 0\n")), "--units", "mm"],
+     "holds no triangles"),
     # compile flags
     ("flag-step-deg-zero", compile_cli, lambda g, t: [str(g["step"]), "--step-deg", "0"], "positive"),
     ("flag-step-deg-nan", compile_cli, lambda g, t: [str(g["step"]), "--step-deg", "nan"], "positive"),
