@@ -6,15 +6,21 @@ and plotting, needed only to compile aspect graphs, render scenes and evaluate. 
 runs the node on precompiled graphs needs neither the CAD stack nor matplotlib:
 ``pip install '.[ros]'`` (docs/ros.md).
 """
+import re
 from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
 
 PACKAGE = "brepose_ros"
+#: the one place the version is written is brepose_ros/__init__.py (read, not imported: setup
+#: runs before the dependencies are installed); test_version.py checks package.xml agrees
+VERSION = re.search(r'^__version__ = "([^"]+)"', (Path(__file__).parent / PACKAGE / "__init__.py").read_text(),
+                    re.MULTILINE).group(1)
 
 setup(
     name=PACKAGE,
-    version="0.1.0",
+    version=VERSION,
     packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),

@@ -17,4 +17,4 @@ Shared by both halves, plain numpy: ``aspect_graph`` (the file format), ``metric
 imports ``ros`` but the scripts, and nothing on the online path imports the CAD stack.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import __version__
+
 FORMAT = "brepose-aspect-graph"
 #: 2: view coordinates as seg_xy / xy_origin / xy_scale; no tetrads (the matcher computes
 #: its own features), no view_ups (view_rotations holds them)
@@ -127,6 +129,7 @@ class AspectGraph:
         return {
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
+            "brepose_ros_version": __version__,  # a record of what wrote the file; loading ignores it
             "step_sha256": self.step_sha256,
             "params": self.params,
             "units": "m",

@@ -33,7 +33,8 @@ from brepose_ros.offline.compiler import DEFAULT_STEP_DEG, compile_aspect_graph 
 from brepose_ros.aspect_graph import AspectGraph, AspectGraphError  # noqa: E402
 from brepose_ros.ros.bags import write_scene_bag  # noqa: E402
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
-from brepose_ros.evaluation.metrics import ModelPoints, pose_errors, summarise, write_predictions  # noqa: E402
+from brepose_ros.evaluation.metrics import (ModelPoints, found_correct, pose_errors, summarise,  # noqa: E402
+                                           write_predictions)
 from brepose_ros.ros.node import EstimatorNode  # noqa: E402
 from brepose_ros.ros.replay import Player, PoseRecorder, RosSession, bag_frames, scene_names  # noqa: E402
 from brepose_ros.ros.messages import image_from_msg  # noqa: E402
@@ -119,12 +120,15 @@ def report(predictions: list[dict], latency: dict[str, float], scene: Path, seco
     summary = summarise(errors)
     summary["frames_per_s"] = len(predictions) / seconds if seconds else float("nan")
     summary["median_latency_ms"] = statistics.median(latency.values()) if latency else float("nan")
-    print("\n" + "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()))
+    print(f"\n{found_correct(errors)}; median error {summary['median_rotation_deg']:.2f} degrees, "
+          f"{summary['median_translation_mm']:.2f} mm; median latency {summary['median_latency_ms']:.0f} ms, "
+          f"{summary['frames_per_s']:.1f} frames/s")
     return summary
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog="example: make demo (= python "
+                                     "launch_free_scripts/demo.py --out out/demo); delete out/demo to start afresh")
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
     parser.add_argument("--images", type=int, default=8, help="images in the synthetic scene")
     parser.add_argument("--seed", type=int, default=0, help="scene random seed")

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from brepose_ros.evaluation.metrics import ModelPoints, pose_error_rate, pose_errors, summarise, translation_error_mm
+from brepose_ros.evaluation.metrics import (ModelPoints, format_summary, found_correct, pose_error_rate, pose_errors,
+                                           summarise, translation_error_mm)
 from brepose_ros.geometry import rot_z, rotation_angle_deg
 
 
@@ -65,3 +66,15 @@ def test_summary_counts_images_without_a_pose_as_failures():
     summary = summarise([right, wrong, None, None])
     assert summary["images"] == 4 and summary["found"] == 0.5 and summary["success"] == 0.25
     assert summary["median_rotation_deg"] == pytest.approx(10.0)
+
+
+def test_summaries_for_people_count_images():
+    t = np.array([0.0, 0.0, 0.4])
+    right = pose_errors(np.eye(3), t, np.eye(3), t, CUBE)
+    wrong = pose_errors(rot_z(np.radians(20.0)), t, np.eye(3), t, CUBE)
+    errors = [right, right, right, wrong, None, None, None, None]
+    assert found_correct(errors) == "4 of 8 found, 3 correct (38 %)"
+    assert found_correct([]) == "0 of 0 found, 0 correct (0 %)"
+    lines = format_summary(summarise(errors)).splitlines()
+    assert "found" in lines[1] and lines[1].endswith("4 of 8 (50 %)")
+    assert "success" in lines[2] and lines[2].endswith("3 of 8 (38 %)")

@@ -15,8 +15,12 @@ from ..ros.bags import COMPRESSIONS, FRAME_ID, STORAGES, write_scene_bag
 from .common import ArgumentParser, positive_float, run
 
 
+EXAMPLE = """example:
+  brepose-bag renders renders_bag --topic /camera/image_raw --info-topic /camera/camera_info --rate 10"""
+
+
 def parser() -> argparse.ArgumentParser:
-    p = ArgumentParser(prog="brepose-bag", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="brepose-bag", description=__doc__.splitlines()[0], epilog=EXAMPLE)
     p.add_argument("scene", type=Path, help="scene folder (camera.json, images/, gt.json)")
     p.add_argument("bag", type=Path, help="new bag folder")
     p.add_argument("--storage", choices=STORAGES, default="mcap", help="storage plugin (default mcap)")

@@ -10,6 +10,7 @@ import math
 import sys
 from typing import Callable
 
+from .. import __version__
 from ..aspect_graph import AspectGraphError
 from ..camera import CameraError
 from ..offline.cad import CadError
@@ -22,7 +23,13 @@ CAD_MODULES = ("cadquery", "OCP", "trimesh")
 
 
 class ArgumentParser(argparse.ArgumentParser):
-    """argparse whose errors are one line, ``PROG: error: ... (see PROG --help)``, exit 2."""
+    """argparse whose errors are one line, ``PROG: error: ... (see PROG --help)``, exit 2;
+    with ``--version``, and the epilog (every command's example) printed as written."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", argparse.RawDescriptionHelpFormatter)
+        super().__init__(*args, **kwargs)
+        self.add_argument("--version", action="version", version=f"%(prog)s (brepose_ros) {__version__}")
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")

@@ -41,8 +41,13 @@ def lonlat(text: str) -> int:
     return value
 
 
+EXAMPLE = """examples:
+  brepose-compile my_part.step -o my_part.brepose.npz      # 5 degrees between views, about a minute
+  brepose-compile my_part.stl --units mm --step-deg 7.5    # a mesh in millimetres, fewer views"""
+
+
 def parser() -> argparse.ArgumentParser:
-    p = ArgumentParser(prog="brepose-compile", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="brepose-compile", description=__doc__.splitlines()[0], epilog=EXAMPLE)
     p.add_argument("step", type=Path, metavar="MODEL",
                    help="STEP file of the part (any unit), or a PLY, STL or OBJ mesh (give --units); stored in metres")
     p.add_argument("--units", choices=list(UNITS), help="length unit of a mesh file (required for meshes)")

@@ -10,16 +10,23 @@ import cv2
 from ..aspect_graph import AspectGraph
 from ..offline.cad import load_step, tessellate
 from ..online.estimator import Estimator
-from ..evaluation.metrics import (ModelPoints, evaluate_scene, format_summary, plot_evaluation,
-                          prediction_entry, scene_summary, write_predictions)
+from ..evaluation.metrics import (ModelPoints, evaluate_scene, format_summary, found_correct, plot_evaluation,
+                                  prediction_entry, scene_summary, write_predictions)
 from ..evaluation.overlay import draw_overlay
 from ..params import EstimatorParams
 from ..scene_folder import load_scene
 from .common import ArgumentParser, non_negative_int, run
 
 
+EXAMPLE = """example:
+  brepose-render my_part.step renders --n 8 && brepose-compile my_part.step -o my_part.brepose.npz
+  brepose-eval renders --graph my_part.brepose.npz --out renders_eval
+  (prints one line per image, '7 of 8 found, 6 correct (75 %)' and the metrics of CONVENTIONS.md; correct =
+  rotation < 5 degrees and translation < 5 % of the diameter)"""
+
+
 def parse_args(argv=None):
-    parser = ArgumentParser(prog="brepose-eval", description=__doc__)
+    parser = ArgumentParser(prog="brepose-eval", description=__doc__, epilog=EXAMPLE)
     parser.add_argument("scene", help="scene folder (camera.json, model.step, images/, gt.json)")
     parser.add_argument("--graph", required=True, help="compiled aspect graph of the scene's part")
     parser.add_argument("--params", help="estimator YAML (config/estimator.yaml layout)")
@@ -54,7 +61,7 @@ def main(argv=None) -> int:
         results = evaluate_scene(scene, estimator, model, on_image=report)
         estimator.close()
         summary = scene_summary(results)
-        print(f"summary over {len(results)} images (model diameter {model.diameter * 1000:.1f} mm):")
+        print(f"{found_correct([r.errors for r in results])} (model diameter {model.diameter * 1000:.1f} mm)")
         print(format_summary(summary))
         if out:
             write_predictions(out / "predictions.json", [prediction_entry(r.image, r.estimate) for r in results])

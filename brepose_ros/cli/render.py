@@ -23,9 +23,14 @@ from .common import ArgumentParser, non_negative_float, non_negative_int, positi
 BUILTIN_PREFIX = "builtin:"
 
 
+EXAMPLE = """examples:
+  brepose-render my_part.step renders --n 8 --seed 0                              # centred, clean
+  brepose-render builtin:sharp_bracket cluttered --n 8 --clutter 3 --offcenter --noise 4"""
+
+
 def parser() -> argparse.ArgumentParser:
     d = SceneConfig()
-    p = ArgumentParser(prog="brepose-render", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="brepose-render", description=__doc__.splitlines()[0], epilog=EXAMPLE)
     p.add_argument("model", help=f"STEP file, or {BUILTIN_PREFIX}NAME of a built-in part "
                                  f"({', '.join(shapes.BUILTIN)})")
     p.add_argument("outdir", type=Path, help="new (or empty) scene folder")

@@ -202,5 +202,31 @@ def plot_evaluation(results: list[ImageResult], path: str | Path, diameter_m: fl
     plt.close(fig)
 
 
+def percent(count: int, total: int) -> str:
+    """``count`` as a whole percentage of ``total``, halves rounded up: '38 %' for 3 of 8."""
+    return f"{int(100 * count / total + 0.5) if total else 0} %"
+
+
+def found_correct(errors: list[PoseErrors | None]) -> str:
+    """The headline of a scene for people: '7 of 8 found, 6 correct (75 %)'; correct is
+    CONVENTIONS.md's success, its share of all images."""
+    found = sum(e is not None for e in errors)
+    correct = sum(e is not None and e.success for e in errors)
+    return f"{found} of {len(errors)} found, {correct} correct ({percent(correct, len(errors))})"
+
+
+#: keys of ``summarise`` / ``scene_summary`` that are shares of all images
+RATE_KEYS = ("found", "success", "er_below_0.01", "add_s_below_0.1", "add_below_0.1", "view_among_3_nearest",
+             "matched_view_among_3_nearest")
+
+
 def format_summary(summary: dict) -> str:
-    return "\n".join(f"  {k:24s} {v:.3f}" if isinstance(v, float) else f"  {k:24s} {v}" for k, v in summary.items())
+    """One line per metric; shares of the images as counts and percentages ('6 of 8 (75 %)')."""
+    n = summary["images"]
+
+    def value(key, v):
+        if key in RATE_KEYS:
+            count = round(v * n)
+            return f"{count} of {n} ({percent(count, n)})"
+        return f"{v:.3f}" if isinstance(v, float) else f"{v}"
+    return "\n".join(f"  {k:28s} {value(k, v)}" for k, v in summary.items())

@@ -66,6 +66,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
+from .. import __version__
 from ..aspect_graph import SUFFIX as GRAPH_SUFFIX
 from ..aspect_graph import AspectGraph
 from ..camera import Camera, CameraError
@@ -540,7 +541,7 @@ class EstimatorNode(Node):
     def _status(self, part: Part, msg, level: bytes, message: str, values: dict, received: float) -> DiagnosticStatus:
         values = {**values, "latency_ms": 1000.0 * (time.perf_counter() - received),
                   "frames_skipped": self.frames.replaced, "frames_lost": self.image_input.lost,
-                  "input_hz": self.rate.hz(time.perf_counter())}
+                  "input_hz": self.rate.hz(time.perf_counter()), "version": __version__}
         return diagnostic_status(part.status_name, level, message, msg.header.frame_id, values)
 
     def destroy_node(self) -> None:
@@ -605,10 +606,18 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"estimator: error: {message} (see estimator --help)\n")
 
 
+NODE_EXAMPLE = """example:
+  estimator --params-file config/node.yaml --ros-args -r image_raw:=/camera/image_raw \\
+            -r camera_info:=/camera/camera_info
+  (docs/tutorial.md, docs/ros.md)"""
+
+
 def parse_args(argv: list[str]) -> tuple[list[str], argparse.Namespace]:
     """Split our own options from the ROS ones; ``--params-file F`` becomes
     ``--ros-args --params-file F`` since there is no ``ros2 run`` to do it."""
-    parser = _Parser(prog="estimator", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="estimator", description=__doc__.splitlines()[0],
+                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog=NODE_EXAMPLE)
+    parser.add_argument("--version", action="version", version=f"%(prog)s (brepose_ros) {__version__}")
     parser.add_argument("--params-file", action="append", default=[],
                         help="ROS parameters YAML (estimator: ros__parameters: ...), e.g. config/node.yaml")
     args = parser.parse_args(rclpy.utilities.remove_ros_args(argv)[1:])
