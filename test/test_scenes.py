@@ -117,7 +117,69 @@ def test_render_command(tmp_path, capsys):
     assert render_cli.main(["builtin:cube", str(tmp_path / "cubes"), "--n", "2", "--width", "160",
                             "--height", "120", "--fx", "150", "--occlusion", "0.2", "-q"]) == 0
     assert len(load_scene(tmp_path / "cubes").entries) == 2
+    assert render_cli.main(["builtin:shaft", str(tmp_path / "shafts"), "--n", "1", "--width", "160",
+                            "--height", "120", "--fx", "150", "--look", "varied", "-q"]) == 0
+    assert "look" in json.loads((tmp_path / "shafts" / "gt.json").read_text())[0]
     assert render_cli.main(["builtin:nothing", str(tmp_path / "x"), "-q"]) == 2
     assert "unknown built-in part" in capsys.readouterr().err
     assert render_cli.main([str(tmp_path / "missing.step"), str(tmp_path / "y"), "-q"]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+VARIED = dict(**SMALL, look="varied", span=(0.15, 0.70), offcenter=True, clutter=3)
+
+
+@pytest.fixture(scope="module")
+def varied(sample_step, tmp_path_factory):
+    """Six varied-look images at 40 % occlusion, with the cube as another part to use."""
+    from brepose_ros.synthetic.props import box_mesh
+
+    config = SceneConfig(**VARIED, occlusion=0.4)
+    return generate_scene(sample_step, tmp_path_factory.mktemp("varied") / "scene", 6, seed=4,
+                          config=config, distractors=[box_mesh(0.04, 0.04, 0.04)])
+
+
+def test_varied_look_reaches_the_occlusion_with_any_occluder(varied):
+    records = json.loads((varied.folder / "gt.json").read_text())
+    for entry, record in zip(varied.entries, records):
+        assert entry.occlusion == pytest.approx(0.4, abs=0.03)
+        mask = cv2.imread(str(varied.folder / entry.image.replace("images", "masks")), 0) > 0
+        assert mask.sum() > 0
+    looks = [r["look"] for r in records]
+    assert len({look["occluder"] for look in looks}) >= 3  # not only bars and pipes
+    assert len({look["background"] for look in looks}) >= 2
+    assert len({look["key_light_deg"] for look in looks}) == 6
+
+
+def test_varied_look_is_the_same_for_the_same_seed(varied, sample_step, tmp_path):
+    from brepose_ros.synthetic.props import box_mesh
+
+    again = generate_scene(sample_step, tmp_path / "again", 2, seed=4, config=SceneConfig(**VARIED, occlusion=0.4),
+                           distractors=[box_mesh(0.04, 0.04, 0.04)])
+    assert json.loads((again.folder / "gt.json").read_text()) == json.loads((varied.folder / "gt.json").read_text())[:2]
+    for name in ("images/000000.png", "images/000001.png", "masks/000001.png"):
+        assert (again.folder / name).read_bytes() == (varied.folder / name).read_bytes()
+
+
+def test_look_changes_the_image_not_the_pose(sample_step, tmp_path):
+    plain = generate_scene(sample_step, tmp_path / "plain", 1, seed=5, config=SceneConfig(**SMALL))
+    varied = generate_scene(sample_step, tmp_path / "varied", 1, seed=5, config=SceneConfig(**SMALL, look="varied"))
+    assert np.array_equal(plain.entries[0].R, varied.entries[0].R)
+    assert np.array_equal(plain.entries[0].t, varied.entries[0].t)
+    assert "look" not in json.loads((plain.folder / "gt.json").read_text())[0]
+    images = [cv2.imread(str(s.entries[0].path), 0).astype(float) for s in (plain, varied)]
+    assert np.abs(images[0] - images[1]).mean() > 5
+    with pytest.raises(SceneError, match="look"):
+        SceneConfig(look="fancy")
+
+
+def test_part_size_spans_the_requested_range(sample_step, tmp_path):
+    config = SceneConfig(**SMALL, look="varied", span=(0.15, 0.70), noise=0.0, blur=0.0)
+    scene = generate_scene(sample_step, tmp_path / "sizes", 12, seed=6, config=config)
+    mesh = tessellate(load_step(scene.step))
+    spans = []
+    for entry in scene.entries:
+        ys, xs = np.nonzero(rasterize(scene.camera, [Placed(mesh, entry.R, entry.t)]).labels == 0)
+        spans.append((max(np.ptp(xs), np.ptp(ys)) + 1) / 240)
+    assert 0.14 <= min(spans) and max(spans) <= 0.72
+    assert min(spans) < 0.3 and max(spans) > 0.5  # the range is used, not one size

@@ -2,7 +2,7 @@
 
     brepose-render MODEL.step|builtin:NAME OUTDIR --n N --seed S [--occlusion F]
                    [--clutter N] [--noise SIGMA] [--offcenter] [--width W --height H --fx F]
-                   [--span-min A --span-max B] [--elevation LO HI] [--color]
+                   [--span-min A --span-max B] [--elevation LO HI] [--color] [--look plain|varied]
 
 OUTDIR gets camera.json, model.step, images/, masks/ and gt.json (../shared/CONVENTIONS.md).
 A bad input prints the reason on stderr and exits with status 2.
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..synthetic import shapes
-from ..synthetic.scenes import SceneConfig, generate_scene
+from ..synthetic.scenes import LOOKS, SceneConfig, generate_scene
 from .common import ArgumentParser, non_negative_float, non_negative_int, positive_float, positive_int, run
 
 BUILTIN_PREFIX = "builtin:"
@@ -53,6 +53,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--elevation", type=float, nargs=2, metavar=("LO", "HI"),
                    help="viewpoints only this many degrees above the model XY plane (default: whole sphere)")
     p.add_argument("--color", action="store_true", help="BGR images instead of grey")
+    p.add_argument("--look", choices=LOOKS, default=d.look,
+                   help="plain: fixed lights and bench; varied: random lights, gloss, backgrounds, blur, "
+                        f"noise and props per image (default {d.look})")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -65,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
                              span=(args.span_min, args.span_max),
                              elevation=tuple(args.elevation) if args.elevation else None,
                              offcenter=args.offcenter, occlusion=args.occlusion, clutter=args.clutter,
-                             noise=args.noise, blur=args.blur, color=args.color)
+                             noise=args.noise, blur=args.blur, color=args.color, look=args.look)
         started = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
             step = Path(args.model)

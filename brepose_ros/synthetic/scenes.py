@@ -4,6 +4,11 @@ A scene folder holds camera.json, model.step, images/NNNNNN.png and gt.json; the
 masks/NNNNNN.png. Occlusion and clutter follow the seed paper's section 7.2: occluders
 (bars and pipes) in front of the part hide a requested share of it, other shapes lie
 behind it, and the share actually hidden is measured from the masks and recorded.
+
+Two looks: "plain" renders every image under the same two lights with a grey part on a
+blotchy grey bench, bars and pipes as props; "varied" (``looks.py``) draws the lights, the
+part's gloss and grey, the background (flat, blotchy, grained or gridded), blur and noise per
+image, and its props also include blobs, polygon plates, glued blocks and other parts.
 """
 from __future__ import annotations
 
@@ -11,6 +16,7 @@ import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -20,7 +26,14 @@ from ..camera import Camera
 from ..geometry import look_at_rotation, normalize, random_rotation, rot_z
 from ..offline.cad import Mesh, load_step, tessellate
 from ..scene_folder import GroundTruth, Scene, SceneError
-from .render import Material, Placed, rasterize, render
+from .looks import background, camera_effects, random_look
+from .props import COMPACT, ELONGATED, KINDS, box_mesh, cylinder_mesh, stretched, unit_prop
+from .render import Lighting, Material, Placed, rasterize, render
+
+__all__ = ["LOOKS", "SceneConfig", "box_mesh", "cylinder_mesh", "generate_scene"]
+
+#: "plain": the fixed look of the first sessions; "varied": ``looks.random_look`` per image.
+LOOKS = ("plain", "varied")
 
 
 @dataclass(frozen=True)
@@ -38,6 +51,7 @@ class SceneConfig:
     noise: float = 2.0  # Gaussian noise sigma, grey levels
     blur: float = 0.6  # Gaussian blur sigma, pixels
     color: bool = False  # BGR images instead of grey
+    look: str = "plain"  # LOOKS; "varied" scales noise and blur by a random factor per image
 
     def __post_init__(self):
         lo, hi = self.span
@@ -49,55 +63,20 @@ class SceneConfig:
             raise SceneError("clutter, noise and blur must not be negative")
         if self.elevation is not None and not -90 <= self.elevation[0] <= self.elevation[1] <= 90:
             raise SceneError(f"elevation band must satisfy -90 <= min <= max <= 90, got {self.elevation}")
+        if self.look not in LOOKS:
+            raise SceneError(f"look must be one of {', '.join(LOOKS)}, got {self.look!r}")
 
     def camera(self) -> Camera:
         return Camera.from_fov(self.width, self.height, self.fx)
 
 
-def box_mesh(dx: float, dy: float, dz: float) -> Mesh:
-    """A box centred at the origin with flat faces (four vertices each)."""
-    half = np.array([dx, dy, dz]) / 2.0
-    vertices, normals, triangles = [], [], []
-    for axis in range(3):
-        for sign in (1.0, -1.0):
-            u, v = np.eye(3)[(axis + 1) % 3], np.eye(3)[(axis + 2) % 3]
-            if sign < 0:
-                u, v = v, u  # keep u x v = outward normal, so triangles stay counter-clockwise
-            normal = sign * np.eye(3)[axis]
-            corners = [normal + a * u + b * v for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
-            base = len(vertices)
-            vertices += [c * half for c in corners]
-            normals += [normal] * 4
-            triangles += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
-    return Mesh(np.array(vertices), np.array(triangles, dtype=np.int32), np.array(normals))
-
-
-def cylinder_mesh(radius: float, length: float, segments: int = 32) -> Mesh:
-    """A closed cylinder along z centred at the origin: smooth side, flat caps."""
-    angles = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
-    ring = np.stack([np.cos(angles), np.sin(angles), np.zeros(segments)], axis=1)
-    lo, hi = np.array([0, 0, -length / 2]), np.array([0, 0, length / 2])
-    k, k1 = np.arange(segments), (np.arange(segments) + 1) % segments
-    # Side: rings 0 (bottom) and 1 (top); caps: their own rings and a centre each.
-    vertices = np.concatenate([radius * ring + lo, radius * ring + hi, radius * ring + lo,
-                               radius * ring + hi, [lo, hi]])
-    up = np.array([0.0, 0.0, 1.0])
-    normals = np.concatenate([ring, ring, np.tile(-up, (segments, 1)), np.tile(up, (segments, 1)),
-                              [-up, up]])
-    s, c = segments, 4 * segments
-    triangles = np.concatenate([
-        np.stack([k, k1, s + k1], axis=1), np.stack([k, s + k1, s + k], axis=1),
-        np.stack([np.full(s, c), 2 * s + k1, 2 * s + k], axis=1),
-        np.stack([np.full(s, c + 1), 3 * s + k, 3 * s + k1], axis=1),
-    ])
-    return Mesh(vertices, triangles.astype(np.int32), normals)
-
-
 def generate_scene(step: str | Path, folder: str | Path, n: int, seed: int = 0,
-                   config: SceneConfig = SceneConfig(), progress: bool = False) -> Scene:
+                   config: SceneConfig = SceneConfig(), progress: bool = False,
+                   distractors: Sequence[Mesh] = ()) -> Scene:
     """Render ``n`` images of the part in a STEP file into a new scene folder.
 
-    Image i depends only on (seed, i), so a scene can be regrown or extended exactly.
+    Image i depends only on (seed, i) (and the ``distractors``: meshes of other parts that the
+    varied look may use as occluders and clutter), so a scene can be regrown or extended exactly.
     """
     folder = Path(folder)
     if n < 1:
@@ -114,14 +93,16 @@ def generate_scene(step: str | Path, folder: str | Path, n: int, seed: int = 0,
     records, entries = [], []
     for i in tqdm(range(n), desc="rendering", disable=not progress):
         rng = np.random.default_rng([seed, i])
-        image, mask, R, t, visible = _render_view(rng, mesh, part.center, camera, config)
+        image, mask, R, t, visible, look = _render_view(rng, mesh, part.center, camera, config,
+                                                        tuple(distractors))
         name = f"images/{i:06d}.png"
         cv2.imwrite(str(folder / name), image)
         cv2.imwrite(str(folder / f"masks/{i:06d}.png"), mask.astype(np.uint8) * 255)
         gt = GroundTruth(name, folder / name, R, t, visible, 1.0 - visible, config.clutter)
-        records.append({"image": name, "R": R.reshape(-1).tolist(), "t": t.tolist(),
-                        "visible_fraction": gt.visible_fraction, "occlusion": gt.occlusion,
-                        "clutter": gt.clutter})
+        record = {"image": name, "R": R.reshape(-1).tolist(), "t": t.tolist(),
+                  "visible_fraction": gt.visible_fraction, "occlusion": gt.occlusion,
+                  "clutter": gt.clutter}
+        records.append(record | ({"look": look} if look else {}))
         entries.append(gt)
     # One entry per line: readable and diffable, full float precision.
     (folder / "gt.json").write_text("[\n" + ",\n".join(json.dumps(r) for r in records) + "\n]\n")
@@ -129,25 +110,40 @@ def generate_scene(step: str | Path, folder: str | Path, n: int, seed: int = 0,
 
 
 def _render_view(rng: np.random.Generator, mesh: Mesh, center: np.ndarray, camera: Camera,
-                 config: SceneConfig):
-    """One noisy image, the part's visible mask, its pose and its visible share."""
+                 config: SceneConfig, distractors: tuple[Mesh, ...]):
+    """One noisy image, the part's visible mask, its pose, its visible share and what the
+    varied look drew (an empty dict for the plain look)."""
     R, t = _sample_pose(rng, mesh, center, camera, config)
-    part = Placed(mesh, R, t)
+    varied = config.look == "varied"
+    look = random_look(rng, config.blur, config.noise, config.color) if varied else None
+    kinds = (KINDS + ("part",) * bool(distractors)) if varied else PROPS
+    part = Placed(mesh, R, t, look.material) if varied else Placed(mesh, R, t)
     alone = rasterize(camera, [part])
     full = alone.labels == 0
     objects = [part]
+    record = look.describe() if varied else {}
     if config.occlusion > 0:
-        objects.append(_occluder(rng, camera, alone.depth, config.occlusion, config.color))
-    objects += _clutter(rng, camera, alone.depth, config.clutter, config.color)
-    background = _background(rng, camera, config.color)
-    result = render(camera, objects, background, color=config.color)
+        occluder, kind = _occluder(rng, camera, alone.depth, config.occlusion, config.color, kinds,
+                                   distractors)
+        objects.append(occluder)
+        if varied:
+            record["occluder"] = kind
+    objects += _clutter(rng, camera, alone.depth, config.clutter, config.color, kinds, distractors,
+                        wide=varied)
+    if varied:
+        scenery = background(rng, camera.width, camera.height, look.background, config.color,
+                             lambda generator: _background(generator, camera, config.color))
+    else:
+        scenery = _background(rng, camera, config.color)
+    result = render(camera, objects, scenery, color=config.color,
+                    lighting=look.lighting if varied else Lighting())
     image = result.image.astype(float)
-    if config.blur > 0:
-        image = cv2.GaussianBlur(image, (0, 0), config.blur)
-    if config.noise > 0:
-        image += rng.normal(0.0, config.noise, image.shape)
+    if varied:
+        image = camera_effects(rng, image, look.blur, look.noise, look.motion, look.motion_angle)
+    else:
+        image = camera_effects(rng, image, config.blur, config.noise)
     image = np.clip(np.rint(image), 0, 255).astype(np.uint8)
-    return image, result.mask, R, t, float(result.mask.sum() / full.sum())
+    return image, result.mask, R, t, float(result.mask.sum() / full.sum()), record
 
 
 def _projected_box(mesh: Mesh, R: np.ndarray, t: np.ndarray, camera: Camera) -> np.ndarray:
@@ -199,16 +195,16 @@ def _scaled(mesh: Mesh, factor: float) -> Mesh:
     return Mesh(mesh.vertices * factor, mesh.triangles, mesh.normals)
 
 
+#: The plain look's props.
 PROPS = ("pipe", "bar")
 
 
-def _prop(kind: str, length: float, width: float) -> Mesh:
-    """A "pipe" or a square "bar" along x (sizes in image-plane units at depth 1)."""
-    if kind == "pipe":
-        pipe = cylinder_mesh(width / 2.0, length)
-        swap = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # z axis -> x axis
-        return Mesh(pipe.vertices @ swap.T, pipe.triangles, pipe.normals @ swap.T)
-    return box_mesh(length, width, width)
+def _sized(kind: str, unit: Mesh, length: float, width: float) -> Mesh:
+    """An elongated prop ``length`` long and ``width`` thick, or a compact one ``width`` across
+    its y axis (the occluder's side across the direction it slides)."""
+    if kind in ELONGATED:
+        return stretched(unit, (length, width, width))
+    return stretched(unit, width / max(np.ptp(unit.vertices[:, 1]), 0.05))
 
 
 def _at_depth(mesh: Mesh, R: np.ndarray, pixel: np.ndarray, depth: float, camera: Camera,
@@ -225,8 +221,9 @@ def _random_material(rng: np.random.Generator, color: bool) -> Material:
 
 
 def _occluder(rng: np.random.Generator, camera: Camera, part_depth: np.ndarray, target: float,
-              color: bool) -> Placed:
-    """A bar or pipe in front of the part, slid across it until it hides ``target`` of it.
+              color: bool, kinds: tuple[str, ...], distractors: tuple[Mesh, ...]) -> tuple[Placed, str]:
+    """A prop of one of ``kinds`` in front of the part, slid across it until it hides ``target``
+    of it; returns it and its kind.
 
     The occluder crosses the part broadside from a random direction; the hidden share
     shrinks as it slides out, so a bisection on the offset meets the target closely. Trial
@@ -245,11 +242,14 @@ def _occluder(rng: np.random.Generator, camera: Camera, part_depth: np.ndarray, 
     z_near = part_depth[full].min()
     angle = rng.uniform(0.0, 2.0 * np.pi)
     slide = np.array([np.cos(angle), np.sin(angle)])
-    roll = cv2.Rodrigues(np.array([rng.uniform(0.0, np.pi), 0.0, 0.0]))[0]
-    R = rot_z(angle + np.pi / 2) @ roll  # long axis across the sliding direction
+    roll = rng.uniform(0.0, np.pi)
     material = _random_material(rng, color)
-    kind = rng.choice(PROPS)
+    kind = str(rng.choice(kinds))
     width = rng.uniform(0.25, 0.45) * size
+    if kind in COMPACT + ("part",):
+        roll = (roll - np.pi / 2) / 2  # within 45 degrees of facing the camera: plates stay wide
+    shape = unit_prop(kind, rng, distractors)
+    R = rot_z(angle + np.pi / 2) @ cv2.Rodrigues(np.array([roll, 0.0, 0.0]))[0]  # long axis across the slide
 
     def place(offset, unit):
         # Keep the whole occluder in front of the part's nearest point.
@@ -261,7 +261,7 @@ def _occluder(rng: np.random.Generator, camera: Camera, part_depth: np.ndarray, 
         return (np.isfinite(crop_depth) & (depth < crop_depth)).sum() / n_full
 
     while True:
-        unit = _prop(kind, 2.0 * size / camera.fx, width / camera.fx)
+        unit = _sized(kind, shape, 2.0 * size / camera.fx, width / camera.fx)
         if hidden(place(0.0, unit)) >= target or width > 2.0 * size:
             break
         width *= 1.4
@@ -276,12 +276,14 @@ def _occluder(rng: np.random.Generator, camera: Camera, part_depth: np.ndarray, 
         if best_error < 2e-3:
             break
         low, high = (offset, high) if share > target else (low, offset)
-    return best
+    return best, kind
 
 
 def _clutter(rng: np.random.Generator, camera: Camera, part_depth: np.ndarray, count: int,
-             color: bool) -> list[Placed]:
-    """Pipes and boxes anywhere in the image but entirely behind the part."""
+             color: bool, kinds: tuple[str, ...], distractors: tuple[Mesh, ...],
+             wide: bool = False) -> list[Placed]:
+    """Props of ``kinds`` anywhere in the image but entirely behind the part, 0.3-1 times its
+    size (``wide``: 0.2-1.2 times)."""
     full = np.isfinite(part_depth)
     ys, xs = np.nonzero(full)
     size = max(np.ptp(xs), np.ptp(ys)) + 1.0
@@ -289,10 +291,13 @@ def _clutter(rng: np.random.Generator, camera: Camera, part_depth: np.ndarray, c
     props = []
     for _ in range(count):
         # At most fx pixels long, so the prop is at most 1 long at depth 1 and fits behind.
-        length = min(rng.uniform(0.3, 1.0) * size, camera.fx) / camera.fx
-        unit = _prop(rng.choice(PROPS), length, rng.uniform(0.1, 0.5) * length)
+        length = min(rng.uniform(*((0.2, 1.2) if wide else (0.3, 1.0))) * size, camera.fx) / camera.fx
+        kind = str(rng.choice(kinds))
+        thickness = rng.uniform(0.1, 0.5) * length
+        shape = unit_prop(kind, rng, distractors)
+        unit = stretched(shape, length) if kind not in ELONGATED else _sized(kind, shape, length, thickness)
         R = random_rotation(rng)
-        nearest = 1.0 + (unit.vertices @ R.T)[:, 2].min()  # > 0.35 by the size bounds
+        nearest = 1.0 + (unit.vertices @ R.T)[:, 2].min()  # > 0.13 by the size bounds
         depth = z_far * rng.uniform(1.05, 1.6) / nearest
         pixel = rng.uniform([0.0, 0.0], [camera.width - 1.0, camera.height - 1.0])
         props.append(_at_depth(unit, R, pixel, depth, camera, _random_material(rng, color)))

@@ -3,7 +3,9 @@
 Dimensions are in millimetres, as in a STEP file; ``export_step`` writes them out and the
 CAD loader converts to metres like any other part. ``sharp_bracket`` and ``rounded_bracket``
 are the seed paper's two test objects (section 7.1), ``cube`` and ``cylinder`` its training
-shapes (section 6), ``sample_bracket`` the bundled part of the README.
+shapes (section 6), ``sample_bracket`` the bundled part of the README. ``shaft``, ``flange``
+and ``notched_plate`` are the hard cases of issue 11: a rotational part with few straight
+edges, a disc with a bolt circle, and a plate that is symmetric but for one small notch.
 """
 from __future__ import annotations
 
@@ -56,6 +58,30 @@ def sample_bracket() -> cq.Workplane:
     return part.union(rib)
 
 
+def shaft() -> cq.Workplane:
+    """A round shaft with a flat at one end and a cross hole: curved, nearly rotational."""
+    part = cq.Workplane("XY").cylinder(70, 10).edges().chamfer(1.0)
+    flat = cq.Workplane("XY").box(20, 8, 24).translate((0, 10 + 4 - 3, 35 - 12))  # 3 mm deep
+    part = part.cut(flat)
+    return part.cut(cq.Workplane("XZ").cylinder(30, 3).translate((0, 0, -15)))
+
+
+def flange() -> cq.Workplane:
+    """A disc with a hub, a through bore and six bolt holes on a circle."""
+    disc = cq.Workplane("XY").circle(45).extrude(10)
+    hub = cq.Workplane("XY").workplane(offset=10).circle(22).extrude(18)
+    part = disc.union(hub).faces(">Z").workplane().hole(24)
+    return part.faces("<Z").workplane().polarArray(34, 0, 360, 6).hole(8)
+
+
+def notched_plate() -> cq.Workplane:
+    """A plate with four corner holes and a slot, symmetric but for one small edge notch."""
+    part = cq.Workplane("XY").box(90, 60, 8).edges("|Z").fillet(4.0)
+    part = part.faces(">Z").workplane().rect(70, 40, forConstruction=True).vertices().hole(7)
+    part = part.faces(">Z").workplane().slot2D(30, 10).cutThruAll()
+    return part.cut(cq.Workplane("XY").box(8, 6, 10).translate((20, 30, 0)))
+
+
 BUILTIN = {
     "cube": cube,
     "box": box,
@@ -63,6 +89,9 @@ BUILTIN = {
     "sharp_bracket": sharp_bracket,
     "rounded_bracket": rounded_bracket,
     "sample_bracket": sample_bracket,
+    "shaft": shaft,
+    "flange": flange,
+    "notched_plate": notched_plate,
 }
 
 

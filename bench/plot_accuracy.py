@@ -1,0 +1,97 @@
+"""Success against occlusion (0-50 %, with clutter) per part set, one line per results file:
+the seed paper's Fig. 9 (error rate against occlusion) as this project measures it.
+
+    python bench/plot_accuracy.py data/bench/results/accuracy_default.json
+    python bench/plot_accuracy.py tetrad=data/bench/results/accuracy_tetrad.json \\
+        search=data/bench/results/accuracy_search.json both=...json [--metric add_s] [--out FIG.png]
+
+Each argument is a results JSON of ``bench/accuracy.py`` (or any file of the same layout,
+e.g. a peer's), optionally prefixed ``LABEL=``; without a label the file's own is used, and
+files of one label are merged (a run split by part).
+Occlusion 0 is the ``clutter`` condition, 10-50 % the ``occlNN+clutter`` ones; rates are
+pooled over each set's parts. The ``clean`` rate is drawn as a marker left of the axis' zero.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+METRICS = {"success": ("success", "success (rot < 5 deg, t < 5 % d)"),
+           "add_s": ("add_s", "ADD-S < 0.1 d")}
+SETS = ("tune", "leave-out")
+
+
+def rate(images: list[dict], metric: str) -> float:
+    if metric == "success":
+        hits = sum(bool(i.get("success", False)) for i in images)
+    else:
+        hits = sum(i.get("add_s", 1.0) < 0.1 for i in images)
+    return hits / len(images) if images else float("nan")
+
+
+def curve(rows: list[dict], part_set: str, metric: str) -> tuple[list[float], list[float], float]:
+    """(occlusion %, rate) with clutter, and the clean rate, pooled over the set's parts."""
+    chosen = [r for r in rows if r["set"] == part_set]
+    xs, ys = [], []
+    for row_occlusion in sorted({r["occlusion"] for r in chosen if r["clutter"] > 0}):
+        images = [i for r in chosen if r["clutter"] > 0 and r["occlusion"] == row_occlusion for i in r["images"]]
+        xs.append(100.0 * row_occlusion)
+        ys.append(rate(images, metric))
+    clean = [i for r in chosen if r["condition"] == "clean" for i in r["images"]]
+    return xs, ys, rate(clean, metric)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("results", nargs="+", help="[LABEL=]results.json of bench/accuracy.py")
+    parser.add_argument("--metric", choices=list(METRICS), default="success")
+    parser.add_argument("--out", type=Path, default=REPO / "docs" / "figures" / "accuracy_vs_occlusion.png")
+    args = parser.parse_args(argv)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    merged: dict[str, dict] = {}
+    for item in args.results:
+        label, _, path = item.rpartition("=")
+        data = json.loads(Path(path).read_text())
+        label = label or data.get("label", Path(path).stem)
+        if label in merged:
+            merged[label]["rows"] = merged[label]["rows"] + data["rows"]
+        else:
+            merged[label] = data
+    runs = list(merged.items())
+    key, axis_label = METRICS[args.metric]
+    fig, axes = plt.subplots(1, len(SETS), figsize=(5.2 * len(SETS), 4.0), sharey=True)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, part_set in zip(axes, SETS):
+        for (label, data), colour in zip(runs, colours):
+            xs, ys, clean = curve(data["rows"], part_set, key)
+            if not xs:
+                continue
+            n_parts = len({r["part"] for r in data["rows"] if r["set"] == part_set})
+            ax.plot(xs, ys, "o-", color=colour, label=f"{label} ({n_parts} parts, n={data.get('n', '?')})")
+            ax.plot([-5], [clean], "s", color=colour, markerfacecolor="none")
+        ax.set_title(f"{part_set} parts")
+        ax.set_xlabel("occlusion with clutter (%)   [square: clean]")
+        ax.set_xticks([-5, 0, 10, 20, 30, 40, 50], ["clean", "0", "10", "20", "30", "40", "50"])
+        ax.set_xlim(-8, 53)
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize=8)
+    axes[0].set_ylabel(axis_label)
+    first = runs[0][1]
+    fig.suptitle(f"bench/accuracy.py, {first.get('look', '?')} look, commit {first.get('commit', '?')}", fontsize=9)
+    fig.tight_layout()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=90)
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
