@@ -1,18 +1,32 @@
-"""Per-image latency of the estimator: stage timings against the number of views and
-worker threads, the start-up time and the peak memory.
+"""Per-image latency of the estimator against worker threads, parts estimated at once and
+the number of views, on clean and occluded scenes; start-up and first-image time.
 
-    python bench/latency.py [--views 500 1505 2500 10000] [--workers 1 2] [--n 6] [--part sharp_bracket]
+    python bench/latency.py [--views 500 2500 10000] [--workers 1 2 4] [--parts 1 2 4]
+                            [--scenes clean occluded] [--n 6] [--rounds 2] [--part sharp_bracket]
 
-Graphs (golden-spiral sampling with the step that gives about that many views) and the
-clean scene are cached in data/bench/; compiling the 10,000-view sharp_bracket takes
-about two minutes on 2 cores. Times are medians over the scene's images; with other jobs
-on the machine they are upper bounds. "setup s" is loading the graph and building the
-estimator's view library, what a node pays once at start.
+Three tables, each measured within one run with the settings alternating image by image
+(the order turns every round), so that a machine busy with other jobs slows every setting
+alike and the ratios stay fair while the absolute times are upper bounds:
+
+- workers: ``matching.workers`` threads for one image; ms per image (median), images/s
+  (1 / mean), the speed-up against the first setting (ratio of the summed times) and
+  whether every setting gave the same poses to the bit;
+- parts: P estimators (P copies of the graph, each with ``--part-workers`` threads) on the
+  same image at once, one thread per part as the node runs them; wall time per image and
+  its ratio to one part;
+- start: in a fresh process, as a node starts: loading the graph and building the
+  estimator ("setup s"), the first image's time, and its ratio to the steady state (the
+  median of the later images).
+
+Graphs (golden-spiral sampling with the step that gives about that many views) and scenes
+(clean; occluded = 30 % occlusion, off-centre, 3 clutter objects) are cached in
+data/bench/; compiling the 10,000-view sharp_bracket takes about two minutes on 2 cores.
 """
 from __future__ import annotations
 
 import argparse
 import resource
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -23,53 +37,170 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import part_step  # noqa: E402
+from bench.accuracy import CONDITIONS, part_step  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
+from brepose_ros.online.workers import WorkerPool  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
-from brepose_ros.synthetic.scenes import generate_scene  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
+from brepose_ros.synthetic.scenes import generate_scene  # noqa: E402
 from brepose_ros.viewsphere import fibonacci_step  # noqa: E402
 
 STAGES = ("edges", "prefilter", "matching", "refinement", "total")
+SCENES = {"clean": "clean", "occluded": "occl30+clutter"}
+
+
+def with_workers(workers: int) -> EstimatorParams:
+    return EstimatorParams().with_flat({"matching.workers": workers})
+
+
+def pose_key(estimate) -> tuple:
+    return (None if estimate.R is None else estimate.R.tobytes(), None if estimate.t is None else estimate.t.tobytes(),
+            estimate.score)
+
+
+def alternate(settings: list, images: list, rounds: int, run) -> dict:
+    """``run(setting, image)`` -> (seconds, result) for every image and setting, the settings
+    alternating image by image, their order turned each round; {setting: [(s, result)]}."""
+    out = {s: [] for s in settings}
+    for r in range(rounds):
+        order = settings[r % len(settings):] + settings[:r % len(settings)]
+        for image in images:
+            for s in order:
+                out[s].append(run(s, image))
+    return out
+
+
+def summary(seconds: list[float]) -> tuple[float, float]:
+    """Median ms per image and images/s (1 / mean)."""
+    return 1000.0 * float(np.median(seconds)), len(seconds) / float(np.sum(seconds))
+
+
+def workers_table(graph: AspectGraph, scene, images, workers: list[int], rounds: int) -> list[str]:
+    estimators = {w: Estimator(graph, with_workers(w)) for w in workers}
+    for e in estimators.values():
+        e.estimate(images[0], scene.camera)  # each pool's first image is not the steady state
+
+    def run(w, image):
+        start = time.perf_counter()
+        estimate = estimators[w].estimate(image, scene.camera)
+        return time.perf_counter() - start, estimate
+
+    results = alternate(workers, images, rounds, run)
+    for e in estimators.values():
+        e.close()
+    same = all(len({pose_key(results[w][i][1]) for w in workers}) == 1 for i in range(len(results[workers[0]])))
+    base = sum(s for s, _ in results[workers[0]])
+    rows = []
+    for w in workers:
+        seconds = [s for s, _ in results[w]]
+        stages = [1000.0 * float(np.median([e.timings.get(k, 0.0) for _, e in results[w]])) for k in STAGES[:-1]]
+        ms, rate = summary(seconds)
+        rows.append(f"| {w} | {' | '.join(f'{m:.0f}' for m in stages)} | {ms:.0f} | {rate:.1f} | "
+                    f"{base / sum(seconds):.2f} | {'yes' if same else 'NO'} |")
+    return rows
+
+
+def parts_table(graph: AspectGraph, scene, images, parts: list[int], part_workers: int, rounds: int) -> list[str]:
+    estimators = [Estimator(graph, with_workers(part_workers)) for _ in range(max(parts))]
+    threads = {p: WorkerPool(p) for p in parts}
+    for e in estimators:
+        e.estimate(images[0], scene.camera)
+
+    def run(p, image):
+        start = time.perf_counter()
+        threads[p].map(lambda e: e.estimate(image, scene.camera), estimators[:p])
+        return time.perf_counter() - start, None
+
+    results = alternate(parts, images, rounds, run)
+    for e in estimators:
+        e.close()
+    for pool in threads.values():
+        pool.close()
+    base = float(np.sum([s for s, _ in results[parts[0]]]))
+    rows = []
+    for p in parts:
+        seconds = [s for s, _ in results[p]]
+        ms, rate = summary(seconds)
+        rows.append(f"| {p} | {part_workers} | {ms:.0f} | {rate * p:.1f} | {sum(seconds) / base:.2f} |")
+    return rows
+
+
+def start_row(path: Path, scene, images, workers: int) -> str:
+    start = time.perf_counter()
+    estimator = Estimator(AspectGraph.load(path), with_workers(workers))
+    setup = time.perf_counter() - start
+    seconds = []
+    for image in images:
+        start = time.perf_counter()
+        estimator.estimate(image, scene.camera)
+        seconds.append(time.perf_counter() - start)
+    estimator.close()
+    steady = float(np.median(seconds[1:]))
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return (f"| {setup:.1f} | {1000 * seconds[0]:.0f} | {1000 * steady:.0f} | {seconds[0] / steady:.2f} | "
+            f"{peak:.0f} |")
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--views", type=int, nargs="*", default=[500, 1505, 2500, 10000])
-    parser.add_argument("--workers", type=int, nargs="*", default=[1, 2])
-    parser.add_argument("--n", type=int, default=6)
+    parser.add_argument("--views", type=int, nargs="*", default=[500, 2500, 10000])
+    parser.add_argument("--workers", type=int, nargs="*", default=[1, 2, 4])
+    parser.add_argument("--parts", type=int, nargs="*", default=[1, 2, 4])
+    parser.add_argument("--part-workers", type=int, default=0, help="matching.workers of each part (0 = cores)")
+    parser.add_argument("--scenes", nargs="*", default=list(SCENES), choices=list(SCENES))
+    parser.add_argument("--tables", nargs="*", default=["workers", "parts", "start"],
+                        choices=["workers", "parts", "start"])
+    parser.add_argument("--n", type=int, default=6, help="images per scene")
+    parser.add_argument("--rounds", type=int, default=2, help="passes over the images, the order turned each time")
     parser.add_argument("--part", default="sharp_bracket")
+    parser.add_argument("--start-only", nargs=2, metavar=("VIEWS", "SCENE"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     cache = REPO / "data" / "bench"
     cache.mkdir(parents=True, exist_ok=True)
     step = part_step(args.part, cache)
-    folder = cache / f"scene_{step.stem}_latency_{args.n}"
-    if not (folder / "gt.json").exists():
-        generate_scene(step, folder, args.n, seed=7)
-    scene = load_scene(folder)
-    images = [cv2.imread(str(e.path), cv2.IMREAD_UNCHANGED) for e in scene.entries]
+    scenes = {}
+    for name in args.scenes:
+        folder = cache / f"scene_{step.stem}_latency_{name}_{args.n}"
+        if not (folder / "gt.json").exists():
+            generate_scene(step, folder, args.n, seed=7, config=CONDITIONS[SCENES[name]])
+        scene = load_scene(folder)
+        scenes[name] = (scene, [cv2.imread(str(e.path), cv2.IMREAD_UNCHANGED) for e in scene.entries])
+    paths = {views: cached_graph_path(step, cache, fibonacci_step(views), label=f"{views}views")
+             for views in args.views}
+    if args.start_only:  # the child process of the start table
+        views, name = args.start_only
+        print(start_row(paths[int(views)], *scenes[name], args.part_workers))
+        return 0
 
-    print(f"| views | workers | {' | '.join(s + ' ms' for s in STAGES)} | images/s | setup s | peak RSS MB |")
-    print("|" + "---|" * (len(STAGES) + 5))
-    for views in args.views:
-        path = cached_graph_path(step, cache, fibonacci_step(views), label=f"{views}views")
-        for workers in args.workers:
-            start = time.perf_counter()
+    if "workers" in args.tables:
+        print("\n| views | scene | workers | " + " | ".join(f"{s} ms" for s in STAGES[:-1])
+              + " | ms/image | images/s | speed-up | same poses |")
+        print("|" + "---|" * 11)
+        for views, path in paths.items():
             graph = AspectGraph.load(path)
-            estimator = Estimator(graph, EstimatorParams().with_flat({"matching.workers": workers}))
-            setup = time.perf_counter() - start
-            timings = {s: [] for s in STAGES}
-            for image in images:
-                estimate = estimator.estimate(image, scene.camera)
-                for s in STAGES:
-                    timings[s].append(estimate.timings.get(s, 0.0) * 1000)
-            estimator.close()
-            medians = [float(np.median(timings[s])) for s in STAGES]
-            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-            print(f"| {graph.n_views} | {workers} | {' | '.join(f'{m:.0f}' for m in medians)} | "
-                  f"{1000 / medians[-1]:.2f} | {setup:.1f} | {peak:.0f} |")
+            for name, (scene, images) in scenes.items():
+                for row in workers_table(graph, scene, images, args.workers, args.rounds):
+                    print(f"| {graph.n_views} | {name} {row}", flush=True)
+    if "parts" in args.tables:
+        print("\n| views | scene | parts | workers each | ms/image | part-images/s | time / 1 part |")
+        print("|" + "---|" * 7)
+        for views, path in paths.items():
+            graph = AspectGraph.load(path)
+            for name, (scene, images) in scenes.items():
+                for row in parts_table(graph, scene, images, args.parts, args.part_workers, args.rounds):
+                    print(f"| {graph.n_views} | {name} {row}", flush=True)
+    if "start" in args.tables:
+        print("\n| views | scene | workers | setup s | first image ms | steady ms | first / steady | peak RSS MB |")
+        print("|" + "---|" * 8)
+        for views in paths:
+            for name in scenes:
+                child = subprocess.run([sys.executable, __file__, "--start-only", str(views), name,
+                                        "--views", str(views), "--scenes", name, "--n", str(args.n),
+                                        "--part", args.part, "--part-workers", str(args.part_workers)],
+                                       capture_output=True, text=True, check=True)
+                print(f"| {views} | {name} | {args.part_workers} {child.stdout.strip()}", flush=True)
     return 0
 
 

@@ -112,8 +112,8 @@ class MatchParams(Ranged):
     hypotheses: int = doc(
         "best-covered (view, rotation) hypotheses per region turned into poses and verified", 6, 1, 64)
     workers: int = doc(
-        "worker threads that split each region's batch of (view, rotation) jobs; 1 by default: the batched "
-        "steps are short and mostly hold the GIL, and 2 threads measured no faster (bench/latency.py)", 1, 1, 16)
+        "worker threads sharing one image's work (the pre-filter's views, the matching jobs, the poses refined "
+        "and scored); 0 = one per CPU core", 0, 0, 16)
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ A bad bag or option prints ``play_bag: error: ...`` and exits with status 2.
 import statistics
 import sys
 
-from brepose_ros.cli.common import ArgumentParser, positive_float
+from brepose_ros.cli.common import ArgumentParser, positive_float, positive_int
 from brepose_ros.ros.bags import BagError
 from brepose_ros.ros.messages import PUBLISHER_QOS
 from brepose_ros.ros.replay import TRANSPORTS, Player, RosSession, bag_frames
@@ -36,6 +36,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bag-info-topic", help="the bag's CameraInfo topic (default: beside the images)")
     parser.add_argument("--image-topic", default="image_raw", help="where the node listens for images")
     parser.add_argument("--info-topic", default="camera_info", help="where the node listens for CameraInfo")
+    parser.add_argument("--statuses", type=positive_int, default=1,
+                        help="diagnostics statuses that answer one image: its parts over every estimator process "
+                             "(run_partitioned.py); lock-step waits for all of them")
+    parser.add_argument("--nodes", type=positive_int, default=1,
+                        help="estimator nodes to wait for before playing (the processes of run_partitioned.py)")
     parser.add_argument("--timeout", type=positive_float, default=10.0,
                         help="seconds to wait for the node / an answer")
     args = parser.parse_args(argv)
@@ -50,20 +55,22 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     with RosSession() as ros:
         player = Player(ros.node("bag_player"), args.image_topic, args.info_topic,
-                        reliability=args.reliability, transport=args.image_transport)
+                        reliability=args.reliability, transport=args.image_transport, statuses=args.statuses)
         try:
-            player.wait_for_node(args.timeout)
+            player.wait_for_node(args.timeout, args.nodes)
             playback = player.play(frames(), args.mode, args.speed, args.timeout)
         except (BagError, TimeoutError) as exc:
             print(f"play_bag: error: {exc}", file=sys.stderr)
             return 2
         if playback.published_at:
-            player.diagnostics.wait_for(max(playback.published_at), args.timeout)
-        answered = playback.answered(player.diagnostics)
+            player.diagnostics.wait_for(max(playback.published_at), args.timeout, args.statuses)
+        answered = playback.answered(player.diagnostics, args.statuses)
         latencies = list(playback.latencies_ms(player.diagnostics).values())
         print(f"published {len(playback.published_at)} images in {playback.seconds:.1f} s, "
               f"the node answered {len(answered)} ({len(answered) / max(playback.seconds, 1e-9):.2f}/s)"
               + (f", median latency {statistics.median(latencies):.0f} ms" if latencies else ""))
+        names = sorted({s.name for stamp in playback.published_at for s in player.diagnostics.statuses.get(stamp, ())})
+        print(f"answered by: {', '.join(names)}")
     return 0
 
 

@@ -444,7 +444,7 @@ BAD_PARAMETERS = [
     ("param-max-model-segments-zero", "matching.max_model_segments", 0),
     ("param-rotation-candidates-huge", "matching.rotation_candidates", 100000),
     ("param-min-score-nan", "pose.min_score", math.nan),
-    ("param-workers-zero", "matching.workers", 0),
+    ("param-workers-negative", "matching.workers", -1),
     ("param-blur-even", "edges.blur_size", 4),
     ("param-fx-inf", "fx", math.inf),
     ("param-string-for-int", "matching.shortlist_size", "many"),

@@ -21,7 +21,7 @@ import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticStatus
 from rcl_interfaces.msg import ParameterType
-from geometry_msgs.msg import PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.parameter import Parameter
 from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, Image
@@ -317,6 +317,35 @@ def test_several_parts_get_their_own_topics_and_statuses(ros):
     ros.pose(stamp)
 
 
+class OverlapEstimator(FakeEstimator):
+    """A slow FakeEstimator that records when each call ran (perf_counter start, end)."""
+
+    def __init__(self, graph, params):
+        super().__init__(graph, params, delay=0.3)
+        self.spans: list[tuple[float, float]] = []
+
+    def estimate(self, image, camera):
+        start = time.perf_counter()
+        try:
+            return super().estimate(image, camera)
+        finally:
+            self.spans.append((start, time.perf_counter()))
+
+
+def test_two_parts_are_estimated_at_once_and_both_poses_published(ros):
+    node = start(ros, factory=OverlapEstimator, graphs=["a.brepose.npz", "b.brepose.npz"],
+                 part_names=["left", "right"])
+    got = {name: [] for name in ("left", "right")}
+    for part in node.parts:
+        ros.probe.create_subscription(PoseStamped, part.pose_pub.topic_name, got[part.name].append, 10)
+    stamp = ros.publish(part_image(), CAMERA)
+    assert len(ros.answer(stamp)) == 2
+    wait_until(lambda: all(got.values()), TIMEOUT, "both poses")
+    assert {stamp_ns(msgs[0].header.stamp) for msgs in got.values()} == {stamp}
+    (start_a, end_a), (start_b, end_b) = (part.estimator.spans[0] for part in node.parts)
+    assert max(start_a, start_b) < min(end_a, end_b), "the two parts ran one after the other"
+
+
 def test_only_the_newest_frame_is_processed(ros):
     node = start(ros, factory=lambda graph, params: FakeEstimator(graph, params, delay=0.3))
     stamps = []
@@ -376,7 +405,7 @@ def test_a_parameter_change_waits_for_the_image_in_flight(ros):
     wait_until(lambda: estimator.busy, TIMEOUT, "the estimator at work")
     assert node.set_parameters([Parameter("matching.workers", value=2)])[0].successful
     ros.answer(stamp)
-    assert estimator.params.matching.workers == 1, "the image in flight kept its parameters"
+    assert estimator.params.matching.workers == 0, "the image in flight kept its parameters"
     ros.answer(ros.publish(part_image(), CAMERA))
     assert estimator.params.matching.workers == 2 and estimator.changed_while_busy == []
 

@@ -19,6 +19,7 @@ scoring ``scoring.CLEAR_SCORE``.
 """
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -33,6 +34,7 @@ from .image_edges import detect_edges
 from .refinement import PoseRefiner
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups
 from .scoring import CLEAR_SCORE, edge_pairs
+from .workers import WorkerPool, resolve_workers
 
 
 @dataclass
@@ -70,13 +72,19 @@ class Estimate:
 
 class Estimator:
     """Finds one part (one aspect graph) in images, one image at a time: ``estimate`` must
-    not run in two threads at once (the ROS node calls it from its one worker thread)."""
+    not run in two threads at once (the ROS node gives each part its own estimator).
+    ``params`` may be set from any thread at any time: an image in flight finishes with the
+    parameters, views and worker threads it started with."""
 
     def __init__(self, graph: AspectGraph, params: EstimatorParams | None = None):
         self.graph = graph
         self._params = params or EstimatorParams()
         self._hypotheses = TetradHypotheses(graph, self._params.matching)
         self._refiner = PoseRefiner(graph)
+        self._pool = WorkerPool(self._params.matching.workers)
+        #: pools replaced by a parameter change, closed once no image uses them
+        self._retired: list[WorkerPool] = []
+        self._lock = threading.Lock()
 
     @property
     def params(self) -> EstimatorParams:
@@ -84,12 +92,21 @@ class Estimator:
 
     @params.setter
     def params(self, value: EstimatorParams) -> None:
-        """New parameters apply from the next image; view features are rebuilt if needed."""
-        self._params = value
-        self._hypotheses.update(value.matching)
+        """New parameters apply from the next image; view features and worker threads are
+        rebuilt if needed (never torn down under an image in flight)."""
+        with self._lock:
+            if value.matching.max_model_segments != self._params.matching.max_model_segments:
+                self._hypotheses = TetradHypotheses(self.graph, value.matching)
+            if resolve_workers(value.matching.workers) != self._pool.size:
+                self._retired.append(self._pool)
+                self._pool = WorkerPool(value.matching.workers)
+            self._params = value
 
     def close(self) -> None:
-        self._hypotheses.close()
+        with self._lock:
+            pools, self._retired = [self._pool, *self._retired], []
+        for pool in pools:
+            pool.close()
 
     def estimate(self, image: np.ndarray, camera: Camera) -> Estimate:
         """Find the part in ``image`` (grey or BGR ndarray) seen by ``camera``.
@@ -97,7 +114,11 @@ class Estimator:
         Raises ValueError for an unusable image (empty, wrong shape or dtype) or an image
         whose size disagrees with the camera's.
         """
-        p = self._params
+        with self._lock:  # one consistent set for the whole image, whatever changes meanwhile
+            p, hypotheses, pool = self._params, self._hypotheses, self._pool
+            retired, self._retired = self._retired, []
+        for old in retired:  # the image that used them has finished: estimate is not re-entrant
+            old.close()
         timings: dict[str, float] = {}
         clock = time.perf_counter()
         if image.ndim < 2 or image.shape[0] != camera.height or image.shape[1] != camera.width:
@@ -120,16 +141,17 @@ class Estimator:
                 break
             regions = [r for r in (normalised_region(indices, frame, p.matching) for indices in batch)
                        if r is not None]
-            jobs = self._hypotheses.shortlist(regions)
+            jobs = hypotheses.shortlist(regions, p.matching, pool)
             clock = _lap(timings, "prefilter", clock)
-            hypotheses = self._hypotheses.match(jobs)
+            matched = hypotheses.match(jobs, p.matching, pool)
             clock = _lap(timings, "matching", clock)
-            if hypotheses:
-                candidates += self._refiner.verify(best_per_region(hypotheses, p.matching.hypotheses), frame, p.pose)
+            if matched:
+                candidates += self._refiner.verify(best_per_region(matched, p.matching.hypotheses), frame, p.pose,
+                                                   pool)
             clock = _lap(timings, "refinement", clock)
         if not candidates:
             return not_found
-        best = self._refiner.best(candidates, frame, p.pose)
+        best = self._refiner.best(candidates, frame, p.pose, pool)
         clock = _lap(timings, "refinement", clock)
         timings["total"] = sum(timings.values())
         found = best.score >= p.pose.min_score

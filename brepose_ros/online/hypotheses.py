@@ -7,13 +7,13 @@ each aligned job becomes a ``Hypothesis``: the similarity from the view's orthog
 coordinates (metres) to the region's virtual image (normalised coordinates), which
 ``refinement.pose_from_similarity`` turns into a first metric pose.
 
-``matching.workers`` threads split each region's batch between them (1 by default: the
-batched steps are short and most of them hold the GIL).
+The worker threads (``workers.WorkerPool``, ``matching.workers``) share the pre-filter's
+views and split each region's batch of jobs between them; results do not depend on how
+the work is split.
 """
 from __future__ import annotations
 
 import itertools
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +24,7 @@ from ..params import MatchParams
 from . import matching
 from .prefilter import ChamferPrefilter, orientation_histogram, orientation_spectra, rotation_candidates
 from .regions import Region
+from .workers import WorkerPool
 
 
 @dataclass
@@ -57,10 +58,10 @@ class ViewLibrary:
         self.pad_size = max(len(f.segments) for f in self.features)
         self.prefilter = ChamferPrefilter([f.segments for f in self.features])
 
-    def shortlist(self, region: Region, p: MatchParams) -> list[tuple[int, float]]:
+    def shortlist(self, region: Region, p: MatchParams, pool: WorkerPool) -> list[tuple[int, float]]:
         """The (view, rotation) pairs closest to the region by oriented chamfer distance."""
         phis = rotation_candidates(self.orientation_spectra, region.orientation_histogram, p.rotation_candidates)
-        views, which = self.prefilter.shortlist(region.distance_maps, phis, p.shortlist_size)
+        views, which = self.prefilter.shortlist(region.distance_maps, phis, p.shortlist_size, pool)
         return [(int(v), float(phis[v, r])) for v, r in zip(views, which)]
 
 
@@ -69,49 +70,36 @@ Job = tuple[Region, int, float]
 
 
 class TetradHypotheses:
-    """Hypotheses for regions by the pre-filter and the bipartite matching of tetrads."""
+    """Hypotheses for regions by the pre-filter and the bipartite matching of tetrads.
+
+    Built for one ``max_model_segments`` (the view features); every other parameter, and
+    the worker threads, come with each call, so an image keeps what it started with."""
 
     def __init__(self, graph: AspectGraph, p: MatchParams):
         self.graph = graph
-        self._params = p
         self._views = ViewLibrary(graph, p.max_model_segments)
-        self._pool = ThreadPoolExecutor(max_workers=max(1, p.workers))
 
-    def update(self, p: MatchParams) -> None:
-        """New parameters; the view features and the thread pool are rebuilt if they change."""
-        old, self._params = self._params, p
-        if p.max_model_segments != old.max_model_segments:
-            self._views = ViewLibrary(self.graph, p.max_model_segments)
-        if p.workers != old.workers:
-            self._pool.shutdown(wait=False)
-            self._pool = ThreadPoolExecutor(max_workers=max(1, p.workers))
-
-    def close(self) -> None:
-        self._pool.shutdown(wait=True)
-
-    def shortlist(self, regions: list[Region]) -> list[Job]:
+    def shortlist(self, regions: list[Region], p: MatchParams, pool: WorkerPool) -> list[Job]:
         """The pre-filter's (view, rotation) jobs of every region, region by region."""
-        return [(region, view, phi) for region in regions for view, phi in self._views.shortlist(region, self._params)]
+        return [(region, view, phi) for region in regions for view, phi in self._views.shortlist(region, p, pool)]
 
-    def match(self, jobs: list[Job]) -> list[Hypothesis]:
+    def match(self, jobs: list[Job], p: MatchParams, pool: WorkerPool) -> list[Hypothesis]:
         """Hypotheses of the jobs, in job order. Consecutive jobs of one region run together
-        (``_match_batch``), split into one batch per thread."""
-        workers = max(1, self._params.workers)
+        (``_match_batch``), split into one batch per worker thread."""
         batches = []
         for _, run in itertools.groupby(jobs, key=lambda job: id(job[0])):
             run = list(run)
-            size = -(-len(run) // workers)
-            batches += [run[i:i + size] for i in range(0, len(run), size)]
-        return [h for batch in self._pool.map(self._match_batch, batches) for h in batch]
+            batches += [run[chunk] for chunk in pool.split(len(run))]
+        return [h for batch in pool.map(lambda batch: self._match_batch(batch, p), batches) for h in batch]
 
-    def _match_batch(self, jobs: list[Job]) -> list[Hypothesis]:
+    def _match_batch(self, jobs: list[Job], p: MatchParams) -> list[Hypothesis]:
         """``matching.align`` for jobs of one region at once (``matching.SegmentBatch``),
         each aligned job composed into the similarity view metres -> virtual image."""
         region = jobs[0][0]
         views = np.array([view for _, view, _ in jobs])
         phi = np.array([phi for _, _, phi in jobs])
         model = matching.SegmentBatch.pad([self._views.features[v].segments for v in views], self._views.pad_size)
-        aligned = matching.align(model, region.features, phi, self._params)
+        aligned = matching.align(model, region.features, phi, p)
         if len(aligned.jobs) == 0:
             return []
         views = views[aligned.jobs]

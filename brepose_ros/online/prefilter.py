@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from ..metric_space import segment_lengths
+from .workers import SERIAL, WorkerPool
 
 #: 2.5 degree bins over [0, pi): a candidate rotation is off by at most 1.25 degrees, which
 #: the assignment tolerates and the similarity fit then removes
@@ -114,26 +115,31 @@ class ChamferPrefilter:
         maps = np.stack([cv2.distanceTransform(c, cv2.DIST_L2, 3) for c in canvas]) * np.float32(cell)
         return np.minimum(maps, np.float32(cls.TRUNCATE))
 
-    def shortlist(self, maps: np.ndarray, phis: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    def shortlist(self, maps: np.ndarray, phis: np.ndarray, count: int,
+                  pool: WorkerPool = SERIAL) -> tuple[np.ndarray, np.ndarray]:
         """Views and rotation indices (in no particular order) of the ``count`` (view,
         rotation) pairs with the lowest score.
 
         Two stages: every pair is scored on every ``COARSE_STRIDE``-th of its points (still
         spread along the whole view), and only the ``COARSE_KEEP`` x ``count`` best go on to
         the full score: at 10,000 views the full score of every pair would cost most of an
-        image's time.
+        image's time. Both stages split their views between the ``pool``'s threads.
         """
-        coarse = self.scores(maps, phis, slice(None, None, self.COARSE_STRIDE)).ravel()
+        coarse = self.scores(maps, phis, slice(None, None, self.COARSE_STRIDE), pool).ravel()
         keep = min(len(coarse), self.COARSE_KEEP * count)
         pairs = np.argpartition(coarse, keep - 1)[:keep] if keep < len(coarse) else np.arange(len(coarse))
         views, which = np.unravel_index(pairs, phis.shape)
-        fine = self._block_scores(maps, self.points[views], self.orientations[views],
-                                  np.mod(phis[views, which].astype(np.float32), np.float32(2 * np.pi))[:, None])[:, 0]
+        turned = np.mod(phis[views, which].astype(np.float32), np.float32(2 * np.pi))[:, None]
+        fine = np.concatenate(pool.map(
+            lambda chunk: self._block_scores(maps, self.points[views[chunk]], self.orientations[views[chunk]],
+                                             turned[chunk])[:, 0],
+            pool.split(len(views), self.BLOCK // 2)))
         count = min(count, len(fine))
         best = np.argpartition(fine, count - 1)[:count]
         return views[best], which[best]
 
-    def scores(self, maps: np.ndarray, phis: np.ndarray, points: slice = slice(None)) -> np.ndarray:
+    def scores(self, maps: np.ndarray, phis: np.ndarray, points: slice = slice(None),
+               pool: WorkerPool = SERIAL) -> np.ndarray:
         """(V, R) mean truncated oriented distance of view v turned by phis[v, r], over the
         view's ``points`` (all by default).
 
@@ -141,14 +147,19 @@ class ChamferPrefilter:
         ``BLOCK`` views, whose temporaries stay in the cache, and the slow steps are
         avoided: one flat gather instead of a 3-index one, and no np.mod for the
         orientation (with phi in [0, 2 pi) the turned orientation is below 3 pi, and
-        subtracting pi once or twice gives np.mod's result to the bit).
+        subtracting pi once or twice gives np.mod's result to the bit). The blocks are shared
+        among the ``pool``'s threads (numpy releases the GIL inside each step).
         """
         phis = np.mod(phis.astype(np.float32), np.float32(2 * np.pi))
         out = np.empty(phis.shape, np.float32)
-        for lo in range(0, len(phis), self.BLOCK):
-            views = slice(lo, lo + self.BLOCK)
-            out[views] = self._block_scores(maps, self.points[views, points], self.orientations[views, points],
-                                            phis[views])
+
+        def score_blocks(blocks: slice) -> None:
+            for lo in range(blocks.start * self.BLOCK, min(blocks.stop * self.BLOCK, len(phis)), self.BLOCK):
+                views = slice(lo, lo + self.BLOCK)
+                out[views] = self._block_scores(maps, self.points[views, points], self.orientations[views, points],
+                                                phis[views])
+
+        pool.map(score_blocks, pool.split(-(-len(phis) // self.BLOCK)))
         return out
 
     def _block_scores(self, maps, points, orientations, phis):

@@ -37,6 +37,7 @@ from .frame import Frame
 from .hypotheses import Hypothesis
 from .lines2d import line_equations, nearest_lines, samples_along
 from .scoring import CLEAR_SCORE, EdgeEvidence, pose_scores
+from .workers import SERIAL, WorkerPool
 
 
 #: association tolerances of the wide rounds that start a hypothesis's refinement, in units
@@ -250,31 +251,42 @@ class PoseRefiner:
         self.graph = graph
         self.neighbours = nearest_neighbours(graph.view_directions, NEIGHBOURS)
 
-    def verify(self, hypotheses: list[Hypothesis], frame: Frame, p: PoseParams) -> list[Candidate]:
+    def verify(self, hypotheses: list[Hypothesis], frame: Frame, p: PoseParams,
+               pool: WorkerPool = SERIAL) -> list[Candidate]:
         """The first poses of the hypotheses, refined together against the image lines, and
         their scores."""
         g = self.graph
         first = [pose_from_similarity(g.view_rotations[h.view], g.model_center, scale=h.scale, phi=h.phi,
                                       shift=h.shift, R_align=h.region.R_align) for h in hypotheses]
-        R, t = self.refine(np.array([R for R, _ in first]), np.array([t for _, t in first]), frame, p,
-                           hypothesis_rounds(p.refine_iterations))
-        scores = pose_scores(g, R, t, frame, p)
+        R, t, scores = self.refined_scores(np.array([R for R, _ in first]), np.array([t for _, t in first]), frame,
+                                           p, hypothesis_rounds(p.refine_iterations), pool)
         return [Candidate(float(scores[j]), R[j], t[j], h) for j, h in enumerate(hypotheses)]
 
-    def best(self, candidates: list[Candidate], frame: Frame, p: PoseParams) -> Candidate:
+    def refined_scores(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams, rounds: tuple[float, ...],
+                       pool: WorkerPool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``refine`` and ``pose_scores`` of B poses, the poses split between the ``pool``'s
+        threads: each pose refines and scores to the same bits alone or in a batch."""
+        def chunk(which: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            R_c, t_c = self.refine(R[which], t[which], frame, p, rounds)
+            return R_c, t_c, pose_scores(self.graph, R_c, t_c, frame, p)
+
+        parts = pool.map(chunk, pool.split(len(R)))
+        return tuple(np.concatenate([part[k] for part in parts]) for k in range(3))
+
+    def best(self, candidates: list[Candidate], frame: Frame, p: PoseParams, pool: WorkerPool = SERIAL) -> Candidate:
         """The best pose of the candidates: the distinct best ones climbed over neighbouring
         views (until one scores ``CLEAR_SCORE``), the winner polished on edge pixels."""
         candidates = sorted(candidates, key=lambda c: -c.score)
         starts = distinct_poses(candidates, p.climb_candidates, self.graph.model_diameter)
-        best = self.climb(starts[0], frame, p)
+        best = self.climb(starts[0], frame, p, pool)
         for start in starts[1:]:
             if best.score >= CLEAR_SCORE:
                 break  # no other pose can explain the image much better; save its climb
-            climbed = self.climb(start, frame, p)
+            climbed = self.climb(start, frame, p, pool)
             best = climbed if climbed.score > best.score else best
         return self.polish(best, frame, p)
 
-    def climb(self, start: Candidate, frame: Frame, p: PoseParams) -> Candidate:
+    def climb(self, start: Candidate, frame: Frame, p: PoseParams, pool: WorkerPool = SERIAL) -> Candidate:
         """Hill-climb the score over neighbouring views of the aspect graph.
 
         A hypothesis from a view 10-30 degrees off refines into a nearby local optimum.
@@ -291,9 +303,9 @@ class PoseRefiner:
             center = best.R @ g.model_center + best.t
             R = np.array([best.R @ rotation_between(g.view_directions[neighbour], g.view_directions[here])
                           for neighbour in self.neighbours[here]])
-            R, t = self.refine(R, center - R @ g.model_center, frame, p, CLIMB_ROUNDS)
+            R, t, scores = self.refined_scores(R, center - R @ g.model_center, frame, p, CLIMB_ROUNDS, pool)
             improved = best
-            for R_j, t_j, score in zip(R, t, pose_scores(g, R, t, frame, p)):
+            for R_j, t_j, score in zip(R, t, scores):
                 if score > improved.score + CLIMB_MIN_GAIN:
                     improved = Candidate(float(score), R_j, t_j, best.hypothesis)
             if improved is best:

@@ -24,12 +24,15 @@ Topics (node name ``estimator``; relative names can be remapped with ``--ros-arg
   once a second while no image arrives (WARN, with the publishers seen) or while frames are
   being lost (WARN, with the count and the remedy).
 
-Threads: the subscription callbacks only store the newest frame; one worker thread runs the
-estimator on it, so a slow image never builds a backlog. The executor threads
-(``executor_threads``) keep callbacks and parameter services responsive meanwhile; the
-estimator spreads the views of one image over its own ``matching.workers`` threads.
-``messages.make_executor`` builds the executor with a work-around for a busy loop of rclpy
-9.1's MultiThreadedExecutor.
+Threads: the subscription callbacks (their own callback group) only store the newest frame;
+one worker thread decodes it and hands it to every part at once, each part's estimator on
+its own thread, so several parts cost about the time of the slowest one on enough cores
+and a slow image never builds a backlog. Each part publishes its pose as soon as it has it;
+the diagnostics array follows when every part has answered. Each estimator spreads one
+image's work over its own ``matching.workers`` threads (0 = one per core). The executor
+threads (``executor_threads``) keep the input callbacks, timers and parameter services
+responsive meanwhile; ``messages.make_executor`` builds the executor with a work-around for
+a busy loop of rclpy 9.1's MultiThreadedExecutor.
 
 Parameters: :data:`NODE_PARAMETERS` and every estimator parameter under its
 ``params.EstimatorParams.flat()`` name (``matching.empty_coefficient``...), each with its
@@ -58,6 +61,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -73,6 +77,7 @@ from ..camera import Camera, CameraError
 from ..evaluation.overlay import draw_overlay
 from ..image_codec import MAX_IMAGE_PIXELS, camera_from_info
 from ..online.estimator import Estimate, Estimator
+from ..online.workers import WorkerPool
 from ..params import EstimatorParams, field_docs, field_ranges, one_line
 from .messages import (COMPRESSED_SUFFIX, DIAGNOSTICS_TOPIC, diagnostic_status, image_from_msg,
                        image_msg, latest_only, make_executor, pose_msg, pose_with_covariance_msg)
@@ -177,8 +182,9 @@ class InputSubscription:
     in between. ``lost`` counts the samples the DDS reader reported lost.
     """
 
-    def __init__(self, node: Node, msg_type, topic: str, callback: Callable):
+    def __init__(self, node: Node, msg_type, topic: str, callback: Callable, group=None):
         self.node, self.msg_type, self.topic, self.callback = node, msg_type, topic, callback
+        self.group = group
         self.lost = 0
         self._lock = threading.Lock()
         profile = latest_only(ReliabilityPolicy.BEST_AVAILABLE)
@@ -194,7 +200,8 @@ class InputSubscription:
     def _create(self, profile: QoSProfile, overriding: QoSOverridingOptions | None = None):
         events = SubscriptionEventCallbacks(message_lost=self._on_lost)
         return self.node.create_subscription(self.msg_type, self.topic, self.callback, profile,
-                                             qos_overriding_options=overriding, event_callbacks=events)
+                                             qos_overriding_options=overriding, event_callbacks=events,
+                                             callback_group=self.group)
 
     def _on_lost(self, info) -> None:
         self.lost += info.total_count_change
@@ -318,14 +325,19 @@ class EstimatorNode(Node):
         self.rate = FrameRate()
         self._logged: dict[str, float] = {}
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        # the input callbacks only store; their own group keeps them from waiting behind a
+        # timer or a parameter service on the executor
+        inputs = MutuallyExclusiveCallbackGroup()
         self.camera_info_input = InputSubscription(self, CameraInfo, self.resolve_topic_name("camera_info"),
-                                                   self._on_camera_info)
+                                                   self._on_camera_info, inputs)
         image_topic = self.resolve_topic_name("image_raw")
         if transport == "compressed":
             self.image_input = InputSubscription(self, CompressedImage, image_topic + COMPRESSED_SUFFIX,
-                                                 self._on_image)
+                                                 self._on_image, inputs)
         else:
-            self.image_input = InputSubscription(self, Image, image_topic, self._on_image)
+            self.image_input = InputSubscription(self, Image, image_topic, self._on_image, inputs)
+        #: one thread per part (the worker itself and len(parts) - 1 more)
+        self._part_threads = WorkerPool(len(self.parts))
         self._lost_reported = 0
         self._started = time.perf_counter()
         self.create_timer(QOS_CHECK_PERIOD, self._follow_publishers)
@@ -516,7 +528,8 @@ class EstimatorNode(Node):
             for part in self.parts:
                 statuses.append(self._status(part, msg, DiagnosticStatus.ERROR, str(exc), {}, received))
         else:
-            statuses = [self._estimate(part, msg, image, camera, received, params) for part in self.parts]
+            statuses = self._part_threads.map(lambda part: self._estimate(part, msg, image, camera, received, params),
+                                              self.parts)
         self.diagnostics_pub.publish(DiagnosticArray(header=msg.header, status=statuses))
 
     def _estimate(self, part: Part, msg, image: np.ndarray, camera: Camera, received: float,
@@ -549,6 +562,7 @@ class EstimatorNode(Node):
         if hasattr(self, "_worker"):
             self.frames.close()
             self._worker.join()
+            self._part_threads.close()
             for part in self.parts:
                 part.estimator.close()
         super().destroy_node()

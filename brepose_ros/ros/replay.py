@@ -109,12 +109,15 @@ def wait_until(predicate: Callable, timeout: float, what: str):
 
 
 class DiagnosticsListener:
-    """Every diagnostics array and its arrival time by image stamp; a caller can wait for one."""
+    """Every diagnostics array and its arrival time by image stamp; a caller can wait for one.
+    ``statuses`` collects the statuses of every array of a stamp: several estimator processes
+    (launch_free_scripts/run_partitioned.py) each answer the same image."""
 
     def __init__(self, node: Node, topic: str = DIAGNOSTICS_TOPIC):
         self._cond = threading.Condition()
         self.by_stamp: dict[int, DiagnosticArray] = {}
         self.arrived: dict[int, float] = {}
+        self.statuses: dict[int, list] = {}
         self.subscription = node.create_subscription(DiagnosticArray, topic, self._on_message, 50)
 
     def _on_message(self, msg: DiagnosticArray) -> None:
@@ -122,12 +125,16 @@ class DiagnosticsListener:
             stamp = stamp_ns(msg.header.stamp)
             self.by_stamp[stamp] = msg
             self.arrived[stamp] = time.perf_counter()
+            self.statuses.setdefault(stamp, []).extend(msg.status)
             self._cond.notify_all()
 
-    def wait_for(self, stamp: int, timeout: float) -> DiagnosticArray | None:
+    def wait_for(self, stamp: int, timeout: float, statuses: int = 1) -> DiagnosticArray | None:
+        """The last array of ``stamp`` once ``statuses`` statuses of it have arrived (None
+        after ``timeout``)."""
         with self._cond:
-            self._cond.wait_for(lambda: stamp in self.by_stamp, timeout)
-            return self.by_stamp.get(stamp)
+            if self._cond.wait_for(lambda: len(self.statuses.get(stamp, ())) >= statuses, timeout):
+                return self.by_stamp[stamp]
+            return None
 
 
 @dataclass
@@ -137,8 +144,8 @@ class Playback:
     published_at: dict[int, float] = field(default_factory=dict)
     seconds: float = 0.0
 
-    def answered(self, diagnostics: DiagnosticsListener) -> list[int]:
-        return [s for s in self.published_at if s in diagnostics.by_stamp]
+    def answered(self, diagnostics: DiagnosticsListener, statuses: int = 1) -> list[int]:
+        return [s for s in self.published_at if len(diagnostics.statuses.get(s, ())) >= statuses]
 
     def latencies_ms(self, diagnostics: DiagnosticsListener) -> dict[int, float]:
         """Publish-to-diagnostics time of every answered image, by stamp."""
@@ -157,11 +164,13 @@ class Player:
     stamp), so replay runs exactly as fast as the node keeps up and no frame is lost;
     ``rate`` keeps the recorded spacing of the stamps divided by ``speed``, like
     ``ros2 bag play``, and the node drops what it cannot keep up with, as it would live.
+    ``statuses`` is the number of diagnostics statuses that answer one image (its parts, over
+    every estimator process): lock-step waits for all of them.
     """
 
     def __init__(self, node: Node, image_topic: str = "image_raw", info_topic: str = "camera_info",
                  diagnostics: DiagnosticsListener | None = None, reliability: str = "best_effort",
-                 transport: str = "raw"):
+                 transport: str = "raw", statuses: int = 1):
         if reliability not in PUBLISHER_QOS:
             raise ValueError(f"reliability must be one of {', '.join(PUBLISHER_QOS)}, got {reliability!r}")
         if transport not in TRANSPORTS:
@@ -175,13 +184,14 @@ class Player:
         self.info_pub = node.create_publisher(CameraInfo, info_topic, qos)
         self.reliable = reliability == "reliable"
         self.diagnostics = diagnostics or DiagnosticsListener(node)
+        self.statuses = statuses
 
-    def wait_for_node(self, timeout: float = 10.0) -> None:
-        """Wait until the node subscribes to the images and we to its diagnostics; a reliable
-        player also gives the node's subscription a moment to follow it to reliable."""
-        wait_until(lambda: self.image_pub.get_subscription_count() > 0
-                   and self.diagnostics.subscription.get_publisher_count() > 0,
-                   timeout, f"a node subscribed to {self.image_pub.topic_name} and publishing diagnostics")
+    def wait_for_node(self, timeout: float = 10.0, nodes: int = 1) -> None:
+        """Wait until ``nodes`` nodes subscribe to the images and we to their diagnostics; a
+        reliable player also gives the nodes' subscriptions a moment to follow it to reliable."""
+        wait_until(lambda: self.image_pub.get_subscription_count() >= nodes
+                   and self.diagnostics.subscription.get_publisher_count() >= nodes,
+                   timeout, f"{nodes} node(s) subscribed to {self.image_pub.topic_name} and publishing diagnostics")
         if self.reliable:
             try:
                 wait_until(self._subscribers_reliable, QOS_SETTLE, "reliable subscriptions")
@@ -212,7 +222,7 @@ class Player:
             playback.published_at[stamp] = time.perf_counter()
             self.image_pub.publish(image)
             if mode == "lockstep":
-                self.diagnostics.wait_for(stamp, timeout)
+                self.diagnostics.wait_for(stamp, timeout, self.statuses)
         playback.seconds = time.perf_counter() - start
         return playback
 

@@ -1,0 +1,81 @@
+"""The worker threads that share one image's work: the stages split their batches (views of
+the pre-filter, jobs of the matching, poses of the refinement) into one chunk per worker.
+
+Threads, not processes: the chunks are large array operations, OpenCV calls and SciPy's
+Kuhn-Munkres, which release the GIL, and a process pool would copy every chunk's arrays
+(../shared/ROS2_ON_PIP.md measured a 2-process pool 2x slower than one thread). The calling
+thread works on the first chunk itself, so ``workers`` threads compute with ``workers - 1``
+pool threads.
+"""
+from __future__ import annotations
+
+import itertools
+import os
+from concurrent.futures import ThreadPoolExecutor, wait
+from typing import Callable, Sequence, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def cpu_count() -> int:
+    """CPU cores this process may run on (its affinity, not the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def resolve_workers(workers: int) -> int:
+    """``matching.workers`` as a thread count: 0 means one per CPU core."""
+    return cpu_count() if workers == 0 else max(1, workers)
+
+
+class WorkerPool:
+    """``size`` threads (the caller and ``size - 1`` pool threads) running chunks of one image.
+
+    ``map`` may be called from one thread at a time per pool (an Estimator's ``estimate``
+    is not re-entrant); estimators in parallel threads each own their pool.
+    """
+
+    def __init__(self, workers: int):
+        self.size = resolve_workers(workers)
+        self._pool = (ThreadPoolExecutor(max_workers=self.size - 1, thread_name_prefix="brepose-worker")
+                      if self.size > 1 else None)
+
+    def map(self, function: Callable[[T], R], chunks: Sequence[T]) -> list[R]:
+        """``[function(c) for c in chunks]``: the caller and the pool threads each take the
+        next chunk not yet taken until none is left (more chunks than threads balance)."""
+        if self._pool is None or len(chunks) < 2:
+            return [function(c) for c in chunks]
+        results: list = [None] * len(chunks)
+        taken = itertools.count()  # next() on it is atomic: each chunk is taken once
+
+        def drain() -> None:
+            while (i := next(taken)) < len(chunks):
+                results[i] = function(chunks[i])
+
+        helpers = [self._pool.submit(drain) for _ in range(min(self.size, len(chunks)) - 1)]
+        try:
+            drain()
+        finally:  # no chunk of this call outlives it, even when one raised
+            wait(helpers)
+        for helper in helpers:
+            helper.result()  # re-raises a chunk's exception
+        return results
+
+    def split(self, count: int, minimum: int = 1) -> list[slice]:
+        """``range(count)`` as at most ``size`` contiguous slices of near-equal length, each
+        at least ``minimum`` long (a chunk shorter than that costs more to hand over than it
+        saves). ``count`` 0 gives one empty slice."""
+        chunks = max(1, min(self.size, count // max(minimum, 1)))
+        bounds = [count * k // chunks for k in range(chunks + 1)]
+        return [slice(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+
+
+#: no threads: the stages' default when no pool is given
+SERIAL = WorkerPool(1)
