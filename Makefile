@@ -14,7 +14,7 @@ setup: $(STAMP)
 $(STAMP): setup.py setup.cfg package.xml
 	$(PYTHON) -m venv $(VENV)
 	$(RUN) $(VENV)/bin/python -m pip install --quiet --upgrade pip
-	$(RUN) $(VENV)/bin/python -m pip install --quiet -e '.[ros,compile,test]'
+	$(RUN) $(VENV)/bin/python -m pip install --quiet -e '.[ros,compile,learn,test]'
 	touch $@
 
 test: $(STAMP)

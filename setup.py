@@ -46,6 +46,8 @@ setup(
             "ros-kilted-visualization-msgs",
         ],
         "compile": ["cadquery>=2.4", "trimesh>=4", "matplotlib>=3.7"],
+        # brepose-learn's search (docs/DECISIONS.md); it also needs [compile] for its scenes
+        "learn": ["optuna>=3.4"],
         "test": ["pytest>=7"],
     },
     zip_safe=True,
@@ -60,6 +62,7 @@ setup(
             "brepose-bag = brepose_ros.cli.bag:main",
             "brepose-estimate = brepose_ros.cli.estimate:main",
             "brepose-eval = brepose_ros.cli.evaluate:main",
+            "brepose-learn = brepose_ros.cli.learn:main",
             "estimator = brepose_ros.ros.node:main",
         ],
     },

@@ -1,7 +1,7 @@
 """Accuracy of the estimator on generated scenes of varied look, per part, condition and part set.
 
     python bench/accuracy.py [--n 24] [--parts shaft flange ...] [--conditions clean clutter ...]
-                             [--params FILE.yaml] [--label NAME] [--look varied|plain]
+                             [--params FILE.yaml] [--label NAME] [--look varied|plain] [--paper-only]
     python bench/accuracy.py --report RESULTS.json [MORE.json ...]   # tables of saved runs
 
 Ten parts: the seed paper's brackets, three built-ins of issue 11 (``shaft``: curved and
@@ -99,6 +99,12 @@ def scene(step: Path, folder: Path, n: int, seed: int, config: SceneConfig, dist
     return load_scene(folder)
 
 
+def distractor_meshes(cache: Path) -> list:
+    """The meshes of the DISTRACTORS found (occluders and clutter of the scenes)."""
+    steps = [step_file(source, cache) for source in DISTRACTORS]
+    return [tessellate(load_step(step)) for step in steps if step is not None]
+
+
 def image_record(result) -> dict:
     e = result.errors
     record = {"image": result.image, "found": e is not None, "score": float(result.estimate.score),
@@ -117,13 +123,14 @@ def git(*args) -> str:
 
 def print_tables(rows: list[dict]) -> None:
     print("\n| set | part | condition | success | ADD-S < 0.1 d | er < 0.01 | median rot (deg) | "
-          "median trans (mm) | median ms |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "median trans (mm) | mean er | median ms |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         s = row["summary"]
         print(f"| {row['set']} | {row['part']} | {row['condition']} | {s['success']:.2f} | "
               f"{s['add_s_below_0.1']:.2f} | {s['er_below_0.01']:.2f} | {s['median_rotation_deg']:.1f} | "
-              f"{s['median_translation_mm']:.1f} | {s['median_time_ms']:.0f} |")
+              f"{s['median_translation_mm']:.1f} | {s.get('mean_error_rate', float('nan')):.3f} | "
+              f"{s['median_time_ms']:.0f} |")
     sets = sorted({row["set"] for row in rows}, reverse=True)  # tune first
     conditions = list(dict.fromkeys(row["condition"] for row in rows))
     print("\nPer set (pooled over its parts' images): success / ADD-S < 0.1 d / median ms\n")
@@ -151,6 +158,8 @@ def main(argv=None) -> int:
     parser.add_argument("--params", type=Path, help="estimator YAML (config/estimator.yaml layout)")
     parser.add_argument("--label", help="names the results file and the plot's line "
                                         "(default: the --params file's stem, else 'default')")
+    parser.add_argument("--paper-only", action="store_true",
+                        help="the seed paper's method alone: the matched view as the pose, no refinement")
     parser.add_argument("--look", default="varied", choices=LOOKS, help="scene look (default varied)")
     parser.add_argument("--step-deg", type=float, default=5.0, help="aspect graph view spacing")
     parser.add_argument("--seed", type=int, default=100)
@@ -168,11 +177,7 @@ def main(argv=None) -> int:
     cache = REPO / "data" / "bench"
     out = args.out or cache / "results" / f"accuracy_{label}.json"
 
-    distractors = []
-    for source in DISTRACTORS:
-        step = step_file(source, cache)
-        if step is not None:
-            distractors.append(tessellate(load_step(step)))
+    distractors = distractor_meshes(cache)
     parts = {name: step_file(PARTS[name], cache) for name in args.parts}
     for name in [name for name, step in parts.items() if step is None]:
         print(f"skipping {name}: {REAL_STEP / PARTS[name]} is not there", file=sys.stderr)
@@ -182,7 +187,7 @@ def main(argv=None) -> int:
            "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
            "command": " ".join(["python", "bench/accuracy.py", *(argv if argv is not None else sys.argv[1:])]),
-           "n": args.n, "look": args.look, "seed": args.seed, "step_deg": args.step_deg, "span": SPAN,
+           "paper_only": args.paper_only, "n": args.n, "look": args.look, "seed": args.seed, "step_deg": args.step_deg, "span": SPAN,
            "tuning": list(TUNING), "params": params.to_dict(), "rows": []}
     rows = run["rows"]
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -198,7 +203,8 @@ def main(argv=None) -> int:
             config = SceneConfig(span=SPAN, look=args.look, **CONDITIONS[condition])
             folder = cache / f"scenes_v{SCENES_VERSION}_{args.look}" / f"{name}_{condition}_{args.seed}"
             results = evaluate_scene(scene(step, folder, args.n, args.seed, config, distractors),
-                                     estimator, model, on_image=lambda *_: progress.update())
+                                     estimator, model, on_image=lambda *_: progress.update(),
+                                     paper_only=args.paper_only)
             rows.append({"part": name, "set": part_set(name), "condition": condition,
                          "occlusion": CONDITIONS[condition].get("occlusion", 0.0),
                          "clutter": CONDITIONS[condition].get("clutter", 0), "views": graph.n_views,

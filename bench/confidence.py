@@ -1,13 +1,19 @@
-"""Can the score be thresholded? Precision and recall of `found` against the score.
+"""Can the score be thresholded? Precision and recall of `found` against the score, and the
+calibrated `pose.min_score`.
 
-    python bench/confidence.py [--n 12] [--part sharp_bracket] [--others cube cylinder sample_bracket]
+    python bench/confidence.py [--n 12] [--parts sharp_bracket rounded_bracket ...] [--check-parts shaft ...]
+                               [--params FILE.yaml] [--precision 0.95] [--plot docs/figures/precision_recall.png]
 
-Positives: images of the part (clean, and off-centre with 30 % occlusion and clutter); a
-detection is correct when the pose succeeds (rotation < 5 deg, translation < 5 % of the
-diameter). Negatives: images of *other* parts and of the part's clutter only, where any
-detection is wrong. For each threshold on the score, precision = correct detections / all
-detections, recall = correct detections / images of the part. Writes data/bench/confidence.png.
-Scenes and graphs are shared with bench/accuracy.py (data/bench/).
+Each part's estimator sees images of its part (positives: clean, and off-centre with 30 %
+occlusion among clutter), where a detection is correct when the pose succeeds (rotation
+< 5 deg, translation < 5 % of the diameter), and the clean images of every *other* part
+(scenes without it), where any detection is wrong. Pooled over the parts, for each
+threshold on the score: precision = correct detections / all detections, recall = correct
+detections / images of the part. The calibrated min_score is the lowest threshold whose
+precision reaches ``--precision`` (``metrics.calibrate_min_score``), chosen on ``--parts``
+(default: bench/accuracy.py's tuning set) and checked on ``--check-parts`` (leave-out parts,
+measured the same way among themselves). Scenes and graphs are shared with
+bench/accuracy.py (data/bench/).
 """
 from __future__ import annotations
 
@@ -20,78 +26,123 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import CONDITIONS, part_step  # noqa: E402
+from bench.accuracy import (CONDITIONS, LOOKS, PARTS, SCENES_VERSION, SPAN, TUNING,  # noqa: E402
+                            distractor_meshes, scene, step_file)
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
+from brepose_ros.evaluation.metrics import (ModelPoints, calibrate_min_score, evaluate_scene,  # noqa: E402
+                                            precision_recall)
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
-from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene  # noqa: E402
-from brepose_ros.synthetic.scenes import generate_scene  # noqa: E402
-from brepose_ros.scene_folder import load_scene  # noqa: E402
+from brepose_ros.params import EstimatorParams  # noqa: E402
+from brepose_ros.synthetic.scenes import SceneConfig  # noqa: E402
+
+POSITIVE_CONDITIONS = ("clean", "occl30+clutter")
 
 
-def scene(step: Path, condition: str, n: int, seed: int, cache: Path):
-    folder = cache / f"scene_{step.stem}_{condition}_{n}_{seed}"
-    if not (folder / "gt.json").exists():
-        generate_scene(step, folder, n, seed=seed, config=CONDITIONS[condition])
-    return load_scene(folder)
+class Collector:
+    """Scores of each part's estimator on its own scenes and on the other parts' clean ones."""
+
+    def __init__(self, n: int, seed: int, step_deg: float, look: str, params: EstimatorParams, cache: Path):
+        self.n, self.seed, self.step_deg, self.look, self.params, self.cache = n, seed, step_deg, look, params, cache
+        self.distractors = distractor_meshes(cache)
+
+    def scene(self, name: str, step: Path, condition: str):
+        config = SceneConfig(span=SPAN, look=self.look, **CONDITIONS[condition])
+        folder = self.cache / f"scenes_v{SCENES_VERSION}_{self.look}" / f"{name}_{condition}_{self.seed}"
+        return scene(step, folder, self.n, self.seed, config, self.distractors)
+
+    def collect(self, names: list[str]):
+        """(scores, correct, positive, owner) arrays, one entry per image and estimator."""
+        steps = {name: step_file(PARTS[name], self.cache) for name in names}
+        steps = {name: step for name, step in steps.items() if step is not None}
+        models = {}
+        for name, step in steps.items():
+            mesh = tessellate(load_step(step))
+            models[name] = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
+        scores, correct, positive, owner = [], [], [], []
+        for name, step in steps.items():
+            estimator = Estimator(AspectGraph.load(cached_graph_path(step, self.cache, self.step_deg)), self.params)
+            for other, other_step in steps.items():
+                for condition in POSITIVE_CONDITIONS if other == name else ("clean",):
+                    for r in evaluate_scene(self.scene(other, other_step, condition), estimator, models[other]):
+                        scores.append(r.estimate.score)
+                        correct.append(other == name and bool(r.errors and r.errors.success))
+                        positive.append(other == name)
+                        owner.append(name)
+            estimator.close()
+            print(f"{name}: done", file=sys.stderr)
+        return tuple(map(np.array, (scores, correct, positive, owner)))
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=12)
-    parser.add_argument("--part", default="sharp_bracket")
-    parser.add_argument("--others", nargs="*", default=["cube", "cylinder", "sample_bracket"])
+    parser.add_argument("--n", type=int, default=12, help="images per part and condition")
+    parser.add_argument("--parts", nargs="*", default=list(TUNING), choices=list(PARTS),
+                        help="parts the threshold is chosen on")
+    parser.add_argument("--check-parts", nargs="*", default=[], choices=list(PARTS),
+                        help="parts the chosen threshold is checked on")
     parser.add_argument("--step-deg", type=float, default=5.0)
     parser.add_argument("--seed", type=int, default=100)
+    parser.add_argument("--look", default="varied", choices=LOOKS)
+    parser.add_argument("--params", type=Path, help="estimator parameter YAML (config/estimator.yaml layout)")
+    parser.add_argument("--precision", type=float, default=0.95, help="precision the min_score must reach")
+    parser.add_argument("--plot", type=Path, default=REPO / "data" / "bench" / "confidence.png")
     args = parser.parse_args(argv)
     cache = REPO / "data" / "bench"
     cache.mkdir(parents=True, exist_ok=True)
-    step = part_step(args.part, cache)
-    estimator = Estimator(AspectGraph.load(cached_graph_path(step, cache, args.step_deg)))
-    mesh = tessellate(load_step(step))
-    model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
-
-    scores, correct, positive = [], [], []
-    for condition in ("clean", "occl30+clutter"):
-        for r in evaluate_scene(scene(step, condition, args.n, args.seed, cache), estimator, model):
-            scores.append(r.estimate.score)
-            correct.append(bool(r.errors and r.errors.success))
-            positive.append(True)
-    for other in args.others:
-        other_step = part_step(other, cache)
-        other_scene = scene(other_step, "clean", args.n, args.seed, cache)
-        other_mesh = tessellate(load_step(other_step))
-        other_model = ModelPoints.from_mesh(other_mesh.vertices, other_mesh.triangles)
-        for r in evaluate_scene(other_scene, estimator, other_model):
-            scores.append(r.estimate.score)
-            correct.append(False)
-            positive.append(False)
-    estimator.close()
-    scores, correct, positive = map(np.array, (scores, correct, positive))
+    params = EstimatorParams.load(args.params) if args.params else EstimatorParams()
+    collector = Collector(args.n, args.seed, args.step_deg, args.look, params, cache)
+    scores, correct, positive, owner = collector.collect(args.parts)
 
     thresholds = np.round(np.arange(0.3, 1.0, 0.05), 2)
-    print(f"{positive.sum()} images of {step.stem}, {(~positive).sum()} of other parts\n")
+    precision, recall, detections = precision_recall(scores, correct, positive.sum(), thresholds)
+    print(f"{positive.sum()} images with the part, {(~positive).sum()} without it ({', '.join(args.parts)}; "
+          f"graphs at {args.step_deg:g} deg, {args.look} look, min_score of --params ignored)\n")
     print("| min_score | detections | precision | recall |")
     print("|---|---|---|---|")
-    curve = []
-    for th in thresholds:
-        found = scores >= th
-        precision = (found & correct).sum() / max(found.sum(), 1)
-        recall = (found & correct).sum() / positive.sum()
-        curve.append((precision, recall))
-        print(f"| {th:.2f} | {found.sum()} | {precision:.2f} | {recall:.2f} |")
+    for th, d, p, r in zip(thresholds, detections, precision, recall):
+        print(f"| {th:.2f} | {d} | {p:.2f} | {r:.2f} |")
+    calibrated = calibrate_min_score(scores, correct, args.precision)
+    if calibrated is None:
+        print(f"\nno threshold reaches precision {args.precision}")
+    else:
+        (p,), (r,), (d,) = precision_recall(scores, correct, positive.sum(), [calibrated])
+        print(f"\ncalibrated min_score {calibrated:.3f}: precision {p:.3f}, recall {r:.3f}, {d} detections")
+    print("\n| part | right poses | calibrated min_score alone |\n|---|---|---|")
+    for name in dict.fromkeys(owner):
+        mine = owner == name
+        alone = calibrate_min_score(scores[mine], correct[mine], args.precision)
+        print(f"| {name} | {correct[mine].sum()} of {positive[mine].sum()} | "
+              f"{'none' if alone is None else f'{alone:.3f}'} |")
+    if args.check_parts and calibrated is not None:
+        s, c, pos, _ = collector.collect(args.check_parts)
+        (p,), (r,), (d,) = precision_recall(s, c, pos.sum(), [calibrated])
+        print(f"\nchecked on {', '.join(args.check_parts)} ({pos.sum()} images with the part, {(~pos).sum()} "
+              f"without): at {calibrated:.3f} precision {p:.3f}, recall {r:.3f}, {d} detections")
+    plot(args.plot, scores, correct, positive, calibrated, args.precision)
+    print(f"\nwrote {args.plot}")
+    return 0
 
+
+def plot(path: Path, scores, correct, positive, calibrated, target) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    p, r = np.array(curve).T
-    axes[0].plot(r, p, marker="o")
-    for th, x, y in zip(thresholds[::2], r[::2], p[::2]):
-        axes[0].annotate(f"{th:.2f}", (x, y), fontsize=7)
+    fine = np.linspace(0.0, 1.0, 101)
+    precision, recall, _ = precision_recall(scores, correct, positive.sum(), fine)
+    fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.6))
+    axes[0].plot(recall, precision, marker=".", markersize=3)
+    for th in (0.5, 0.6, 0.7, 0.8, 0.9):
+        i = int(round(th * 100))
+        axes[0].annotate(f"{th:.1f}", (recall[i], precision[i]), fontsize=7)
+    axes[0].axhline(target, color="grey", linestyle=":", linewidth=1)
+    if calibrated is not None:
+        (p,), (r,), _ = precision_recall(scores, correct, positive.sum(), [calibrated])
+        axes[0].plot([r], [p], "r*", markersize=10, label=f"min_score {calibrated:.2f}")
+        axes[0].legend(fontsize=8, loc="lower left")
     axes[0].set_xlabel("recall")
     axes[0].set_ylabel("precision")
     axes[0].set_xlim(0, 1)
@@ -99,16 +150,18 @@ def main(argv=None) -> int:
     axes[0].grid(alpha=0.3)
     bins = np.linspace(0, 1, 21)
     axes[1].hist([scores[correct], scores[positive & ~correct], scores[~positive]], bins=bins, stacked=True,
-                 label=["part, right pose", "part, wrong pose", "other part"],
+                 label=["part, right pose", "part, wrong pose", "part absent"],
                  color=["tab:green", "tab:orange", "tab:red"])
+    if calibrated is not None:
+        axes[1].axvline(calibrated, color="k", linestyle="--", linewidth=1)
     axes[1].set_xlabel("score")
     axes[1].set_ylabel("images")
-    axes[1].legend()
-    fig.suptitle(f"score of the {step.stem} estimator")
+    axes[1].legend(fontsize=8)
+    fig.suptitle("score against correctness, pooled over the parts", fontsize=10)
     fig.tight_layout()
-    fig.savefig(cache / "confidence.png", dpi=90)
-    print(f"\nwrote {cache / 'confidence.png'}")
-    return 0
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=72)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

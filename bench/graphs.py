@@ -11,10 +11,13 @@ from brepose_ros.aspect_graph import FORMAT_VERSION, SUFFIX
 from brepose_ros.offline.compiler import compile_aspect_graph
 
 
-def cached_graph_path(step: Path, cache: Path, step_deg: float, label: str | None = None) -> Path:
-    """``cache/<stem>_<label>_v<FORMAT_VERSION>.brepose.npz`` (label: ``<step_deg>deg``),
-    the aspect graph of ``step`` at ``step_deg``, compiled there first if absent."""
-    path = cache / f"{step.stem}_{label or f'{step_deg:g}deg'}_v{FORMAT_VERSION}{SUFFIX}"
+def cached_graph_path(step: Path, cache: Path, step_deg: float, label: str | None = None,
+                      lonlat: int | None = None) -> Path:
+    """``cache/<stem>_<label>_v<FORMAT_VERSION>.brepose.npz`` (label: ``<step_deg>deg``, or
+    ``lonlat<K>`` on the paper's grid of density ``lonlat``), the aspect graph of ``step``,
+    compiled there first if absent."""
+    label = label or (f"lonlat{lonlat}" if lonlat else f"{step_deg:g}deg")
+    path = cache / f"{step.stem}_{label}_v{FORMAT_VERSION}{SUFFIX}"
     if not path.exists():
-        compile_aspect_graph(step, step_deg=step_deg).save(path)
+        compile_aspect_graph(step, step_deg=step_deg, lonlat=lonlat).save(path)
     return path

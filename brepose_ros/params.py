@@ -175,7 +175,7 @@ class EstimatorParams:
         except yaml.YAMLError as exc:
             raise ValueError(f"parameter file {path} is not valid YAML: {one_line(exc)}") from None
         try:
-            return cls.from_dict(data)
+            return cls.from_dict(ros_section(data))
         except ValueError as exc:
             raise ValueError(f"parameter file {path}: {exc}") from None
 
@@ -193,6 +193,28 @@ class EstimatorParams:
         if extra:
             raise ValueError(f"unknown parameter group(s): {', '.join(sorted(extra))}")
         return EstimatorParams.from_dict(merged)
+
+
+def ros_section(data: Any) -> Any:
+    """The parameters of a ROS 2 parameter file's one node (``NODE: ros__parameters: ...``,
+    names nested by group or dotted) as the nested groups ``from_dict`` reads; anything
+    else is returned as it is. So one file (config/learned.yaml) serves both the node's
+    ``--params-file`` and the CLIs' ``--params``."""
+    if not (isinstance(data, dict) and len(data) == 1):
+        return data
+    (section,) = data.values()
+    if not (isinstance(section, dict) and list(section) == ["ros__parameters"]):
+        return data
+    nested: dict[str, Any] = {}
+    for name, value in (section["ros__parameters"] or {}).items():
+        group, dot, key = str(name).partition(".")
+        if dot:
+            nested.setdefault(group, {})[key] = value
+        elif isinstance(value, dict) and isinstance(nested.get(name, {}), dict):
+            nested.setdefault(name, {}).update(value)
+        else:
+            nested[name] = value  # not a group: from_dict names it
+    return nested
 
 
 def replace_checked(instance, overrides: dict, group: str):

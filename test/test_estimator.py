@@ -70,6 +70,20 @@ def test_partly_occluded_part_is_found(bracket, estimator, tmp_path):
     assert scene_summary(results)["success"] >= 2 / 6
 
 
+@pytest.mark.slow
+def test_the_papers_method_alone_reports_the_matched_view_unrefined(bracket, estimator, tmp_path):
+    generate_scene(bracket[0], tmp_path / "scene", 6, seed=3)
+    scene = load_scene(tmp_path / "scene")
+    paper = evaluate_scene(scene, estimator, bracket[2], paper_only=True)
+    full = evaluate_scene(scene, estimator, bracket[2])
+    for r in paper:
+        assert r.estimate.found and r.estimate.matched_view >= 0 and "refinement" not in r.estimate.timings
+    # the matched view is near the truth (er < 0.03 is 20 degrees), the refinement makes it exact
+    assert np.median([r.errors.error_rate for r in paper]) < 0.03
+    assert np.median([r.errors.rotation_deg for r in paper]) > np.median([r.errors.rotation_deg for r in full
+                                                                             if r.errors])
+
+
 def test_image_without_the_part_is_not_found(estimator):
     rng = np.random.default_rng(0)
     camera = Camera.from_fov(640, 480, 600.0)

@@ -33,7 +33,7 @@ def test_the_changelog_has_a_section_for_the_version():
 
 @pytest.mark.parametrize("command", [
     pytest.param(name, marks=[pytest.mark.cad] if name in CAD_COMMANDS else [])
-    for name in ("compile", "render", "bag", "estimate", "evaluate")])
+    for name in ("compile", "render", "bag", "estimate", "evaluate", "learn")])
 def test_every_command_reports_the_version_and_shows_an_example(command, capsys):
     module = importlib.import_module(f"brepose_ros.cli.{command}")
     with pytest.raises(SystemExit) as stop:

@@ -108,7 +108,20 @@ def summarise(errors: list[PoseErrors | None]) -> dict:
         "median_translation_mm": median("translation_mm"),
         "median_error_rate": median("error_rate"),
         "median_add_s": median("add_s"),
+        "mean_error_rate": mean_error_rate(errors),
     }
+
+
+#: the error rate counted for an image where nothing was found: the mean ``er`` of a
+#: viewing direction drawn at random, (1 - E[cos]) / 2 with E[cos] = 0 over the sphere
+NOT_FOUND_ERROR_RATE = 0.5
+
+
+def mean_error_rate(errors: list[PoseErrors | None]) -> float:
+    """Mean ``er`` over a scene (the seed paper's Fig. 7-10), ``NOT_FOUND_ERROR_RATE`` where
+    nothing was found: the paper always answers, so a missed part counts as a guess."""
+    rates = [NOT_FOUND_ERROR_RATE if e is None else e.error_rate for e in errors]
+    return float(np.mean(rates)) if rates else float("nan")
 
 
 def write_predictions(path: str | Path, predictions: list[dict]) -> None:
@@ -136,15 +149,16 @@ class ImageResult:
     matched_view_rank: int  # the same for the view the bipartite matching chose
 
 
-def evaluate_scene(scene, estimator, model: ModelPoints, on_image=None) -> list[ImageResult]:
-    """Run ``estimator`` over a loaded scene (``scene_folder.load_scene``) and measure every image."""
+def evaluate_scene(scene, estimator, model: ModelPoints, on_image=None, paper_only: bool = False) -> list[ImageResult]:
+    """Run ``estimator`` over a loaded scene (``scene_folder.load_scene``) and measure every
+    image; ``paper_only``: by the seed paper's method alone (``Estimator.estimate``)."""
     graph = estimator.graph
     results = []
     for entry in scene.entries:
         image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise ValueError(f"cannot read image {entry.path}")
-        estimate = estimator.estimate(image, scene.camera)
+        estimate = estimator.estimate(image, scene.camera, paper_only=paper_only)
         errors = pose_errors(estimate.R, estimate.t, entry.R, entry.t, model) if estimate.found else None
         direction = direction_to(graph.model_center, entry.R, entry.t)
         order = list(nearest_views(graph.view_directions, direction, k=min(graph.n_views, 50)))
@@ -230,3 +244,28 @@ def format_summary(summary: dict) -> str:
             return f"{count} of {n} ({percent(count, n)})"
         return f"{v:.3f}" if isinstance(v, float) else f"{v}"
     return "\n".join(f"  {k:28s} {value(k, v)}" for k, v in summary.items())
+
+
+def precision_recall(scores, correct, n_positive: int, thresholds) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Precision, recall and detection count of ``found = score >= threshold`` per threshold.
+
+    ``scores``/``correct`` have one entry per image (``correct``: found the part at the right
+    pose; an image without the part is never correct); ``n_positive`` images hold the part.
+    A threshold with no detection has precision 1 (nothing reported, nothing wrong)."""
+    scores, correct = np.asarray(scores, dtype=float), np.asarray(correct, dtype=bool)
+    found = scores[None, :] >= np.asarray(thresholds, dtype=float)[:, None]
+    detections = found.sum(axis=1)
+    right = (found & correct[None, :]).sum(axis=1)
+    precision = np.where(detections > 0, right / np.maximum(detections, 1), 1.0)
+    return precision, right / max(n_positive, 1), detections
+
+
+def calibrate_min_score(scores, correct, target_precision: float = 0.95) -> float | None:
+    """The lowest threshold on the score whose detections are right at least
+    ``target_precision`` of the time: the ``pose.min_score`` that keeps the reported poses
+    trustworthy with the most of them found. Thresholds are the measured scores themselves;
+    None when no threshold reaches the precision."""
+    candidates = np.unique(np.asarray(scores, dtype=float))
+    precision, _, _ = precision_recall(scores, correct, 1, candidates)
+    passing = candidates[precision >= target_precision]
+    return float(passing[0]) if len(passing) else None

@@ -14,6 +14,12 @@ Each stage lives in its own module; this one only wires them:
    polished on the edge pixels
 5. ``scoring``: found if the score passes ``pose.min_score``; the error ratio at the pose
 
+``estimate(..., paper_only=True)`` stops after step 3, as the seed paper does (section 6):
+the bipartite matching's best-covered hypothesis over all regions, its view turned into a
+pose by the similarity alone (``refinement.pose_from_similarity``), not refined nor
+verified; the paper has no "not found", so any hypothesis is reported. It is the
+baseline of bench/paper_figures.py and of the learning (brepose-learn).
+
 The whole image is matched and verified first, the clusters only when it holds no pose
 scoring ``scoring.CLEAR_SCORE``.
 """
@@ -31,7 +37,7 @@ from ..params import EstimatorParams
 from .frame import Frame
 from .hypotheses import TetradHypotheses, best_per_region
 from .image_edges import detect_edges
-from .refinement import PoseRefiner
+from .refinement import PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups
 from .scoring import CLEAR_SCORE, edge_pairs
 from .workers import WorkerPool, resolve_workers
@@ -108,8 +114,9 @@ class Estimator:
         for pool in pools:
             pool.close()
 
-    def estimate(self, image: np.ndarray, camera: Camera) -> Estimate:
-        """Find the part in ``image`` (grey or BGR ndarray) seen by ``camera``.
+    def estimate(self, image: np.ndarray, camera: Camera, paper_only: bool = False) -> Estimate:
+        """Find the part in ``image`` (grey or BGR ndarray) seen by ``camera``; with
+        ``paper_only`` by the seed paper's method alone (module doc).
 
         Raises ValueError for an unusable image (empty, wrong shape or dtype) or an image
         whose size disagrees with the camera's.
@@ -132,6 +139,8 @@ class Estimator:
             return not_found
         frame = Frame.of(edges, camera)
         groups = region_groups(frame, p.matching)
+        if paper_only:
+            return self._paper_estimate(groups, frame, p, hypotheses, pool, not_found, clock)
         candidates = []
         # the whole image first: when it holds a clear pose, the clusters (pieces of the
         # same part, or the part among clutter) cannot add one, and their pre-filter,
@@ -161,6 +170,27 @@ class Estimator:
                         n_image_segments=len(edges.segments), n_matched=pairs.n_matched, n_nearest=pairs.n_nearest,
                         image_segments=pairs.image_segments, model_segments=pairs.model_segments, timings=timings,
                         matched_view=int(best.hypothesis.view), covariance=best.covariance if found else None)
+
+    def _paper_estimate(self, groups: list, frame: Frame, p: EstimatorParams, hypotheses: TetradHypotheses, pool,
+                        not_found: Estimate, clock: float) -> Estimate:
+        """The best-covered hypothesis of all regions at once, its view as the pose."""
+        g, timings = self.graph, not_found.timings
+        regions = [r for r in (normalised_region(indices, frame, p.matching) for indices in groups) if r is not None]
+        jobs = hypotheses.shortlist(regions, p.matching, pool)
+        clock = _lap(timings, "prefilter", clock)
+        matched = hypotheses.match(jobs, p.matching, pool)
+        _lap(timings, "matching", clock)
+        timings["total"] = sum(timings.values())
+        if not matched:
+            return not_found
+        best = max(matched, key=lambda h: h.coverage)
+        R, t = pose_from_similarity(g.view_rotations[best.view], g.model_center, scale=best.scale, phi=best.phi,
+                                    shift=best.shift, R_align=best.region.R_align)
+        pairs = edge_pairs(g, R, t, frame, p)
+        return Estimate(found=True, R=R, t=t, score=best.coverage, error_ratio=pairs.error_ratio,
+                        view_index=g.nearest_view(R, t), n_image_segments=not_found.n_image_segments,
+                        n_matched=pairs.n_matched, n_nearest=pairs.n_nearest, image_segments=pairs.image_segments,
+                        model_segments=pairs.model_segments, timings=timings, matched_view=best.view)
 
 
 def _lap(timings: dict, name: str, start: float) -> float:

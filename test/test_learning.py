@@ -1,0 +1,96 @@
+"""brepose-learn (the seed paper's learning mechanism) and the parameter files it writes."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from brepose_ros.evaluation.learning import SEARCH_SPACE, search_space, symmetric_errors, symmetry_rotations
+from brepose_ros.evaluation.metrics import ModelPoints, mean_error_rate, pose_errors
+from brepose_ros.geometry import rot_z
+from brepose_ros.params import EstimatorParams, field_ranges
+
+CUBE = ModelPoints(np.array([[x, y, z] for x in (-0.02, 0.02) for y in (-0.02, 0.02) for z in (-0.02, 0.02)]))
+
+
+def test_every_searched_parameter_exists_and_its_range_is_allowed():
+    ranges, defaults = field_ranges(), EstimatorParams().flat()
+    assert search_space() == list(SEARCH_SPACE)
+    for knob in SEARCH_SPACE:
+        low, high = ranges[knob.name]
+        assert low <= knob.low < knob.high <= high, knob
+        assert knob.low <= defaults[knob.name] <= knob.high, f"{knob.name}: the default is the first trial"
+
+
+def test_training_shapes_have_their_symmetries():
+    assert len(symmetry_rotations("cube")) == 24 and len(symmetry_rotations("box")) == 4
+    assert len(symmetry_rotations("sharp_bracket")) == 1
+    for shape in ("cube", "box", "cylinder"):
+        rotations = symmetry_rotations(shape)
+        assert np.allclose(rotations @ rotations.transpose(0, 2, 1), np.eye(3)) and np.allclose(
+            np.linalg.det(rotations), 1.0)
+
+
+def test_a_cube_turned_by_a_quarter_turn_is_the_same_pose():
+    t = np.array([0.0, 0.0, 0.4])
+    R_gt = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # the camera sees the cube from its side
+    turned = R_gt @ rot_z(np.pi / 2)
+    assert pose_errors(turned, t, R_gt, t, CUBE).error_rate == pytest.approx(0.5)
+    same = symmetric_errors(turned, t, R_gt, t, CUBE, symmetry_rotations("cube"))
+    assert same.success and same.error_rate == pytest.approx(0.0, abs=1e-12)
+    off = symmetric_errors(turned @ rot_z(np.radians(10.0)), t, R_gt, t, CUBE, symmetry_rotations("cube"))
+    assert off.rotation_deg == pytest.approx(10.0) and not off.success
+
+
+def test_mean_error_rate_counts_a_missed_part_as_a_guess():
+    t = np.array([0.0, 0.0, 0.4])
+    right = pose_errors(np.eye(3), t, np.eye(3), t, CUBE)
+    assert mean_error_rate([right, None]) == pytest.approx(0.25)
+
+
+def test_a_ros_parameter_file_loads_as_estimator_parameters(tmp_path):
+    nested = tmp_path / "nested.yaml"
+    nested.write_text("estimator:\n  ros__parameters:\n    matching:\n      empty_coefficient: 0.3\n"
+                      "    edges.merge_gap: 9.0\n")
+    params = EstimatorParams.load(nested)
+    assert params.matching.empty_coefficient == 0.3 and params.edges.merge_gap == 9.0
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("estimator:\n  ros__parameters:\n    matching:\n      empty_coefficient: 50.0\n")
+    with pytest.raises(ValueError, match="empty_coefficient must be in"):
+        EstimatorParams.load(bad)
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("estimator:\n  ros__parameters:\n    graphs: [a.npz]\n")
+    with pytest.raises(ValueError, match="unknown parameter group"):
+        EstimatorParams.load(typo)
+
+
+@pytest.mark.cad
+@pytest.mark.slow
+def test_brepose_learn_on_a_tiny_budget_writes_a_file_the_estimator_loads(tmp_path, capsys):
+    pytest.importorskip("optuna")
+    from brepose_ros.cli.learn import main
+
+    out = tmp_path / "learned.yaml"
+    assert main(["-o", str(out), "--trials", "1", "--n", "1", "--step-deg", "30", "--cache",
+                 str(tmp_path / "cache")]) == 0
+    text = out.read_text()
+    assert "# shapes: cube, box, cylinder" in text and "training score, learned" in text
+    learned = EstimatorParams.load(out)
+    searched = {k.name for k in SEARCH_SPACE}
+    changed = {n for n, v in learned.flat().items() if v != EstimatorParams().flat()[n]}
+    assert changed <= searched
+
+
+def test_min_score_calibration_finds_the_known_threshold():
+    from brepose_ros.evaluation.metrics import calibrate_min_score, precision_recall
+
+    # highest first: 10 right poses at 0.9..0.81, a wrong one at 0.80, 9 right at 0.79..0.71, then
+    # wrong ones from 0.70 down: down to 0.71 precision is 19 / 20 = 0.95, at 0.70 it is 19 / 21
+    right = list(np.linspace(0.9, 0.81, 10)) + list(np.linspace(0.79, 0.71, 9))
+    wrong = [0.80] + list(np.linspace(0.70, 0.3, 10))
+    scores, correct = right + wrong, [True] * len(right) + [False] * len(wrong)
+    assert calibrate_min_score(scores, correct, 0.95) == pytest.approx(0.71)
+    assert calibrate_min_score(scores, correct, 0.96) == pytest.approx(0.81)  # 10 / 10 above the wrong 0.80
+    assert calibrate_min_score([0.9, 0.5], [False, True], 0.95) is None  # the best score is wrong
+    precision, recall, detections = precision_recall(scores, correct, 20, [0.71, 0.95])
+    assert precision == pytest.approx([0.95, 1.0]) and recall == pytest.approx([0.95, 0.0])
+    assert list(detections) == [20, 0]
