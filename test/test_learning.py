@@ -1,6 +1,8 @@
 """brepose-learn (the seed paper's learning mechanism) and the parameter files it writes."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ from brepose_ros.evaluation.metrics import ModelPoints, mean_error_rate, pose_er
 from brepose_ros.geometry import rot_z
 from brepose_ros.params import EstimatorParams, field_ranges
 
+CONFIG = Path(__file__).resolve().parents[1] / "config"
 CUBE = ModelPoints(np.array([[x, y, z] for x in (-0.02, 0.02) for y in (-0.02, 0.02) for z in (-0.02, 0.02)]))
 
 
@@ -94,3 +97,18 @@ def test_min_score_calibration_finds_the_known_threshold():
     precision, recall, detections = precision_recall(scores, correct, 20, [0.71, 0.95])
     assert precision == pytest.approx([0.95, 1.0]) and recall == pytest.approx([0.95, 0.0])
     assert list(detections) == [20, 0]
+
+
+def test_the_shipped_learned_file_passes_the_estimator_files_checks():
+    learned = EstimatorParams.load(CONFIG / "learned.yaml")
+    defaults = EstimatorParams().flat()
+    changed = {n for n, v in learned.flat().items() if v != defaults[n]}
+    assert changed and changed <= {k.name for k in SEARCH_SPACE}
+    assert "# training score, learned" in (CONFIG / "learned.yaml").read_text()
+
+
+@pytest.mark.ros
+def test_the_node_accepts_the_learned_file_as_a_parameter_file():
+    from brepose_ros.ros.node import check_params_file
+
+    check_params_file(CONFIG / "learned.yaml")  # raises StartupError on an unknown name

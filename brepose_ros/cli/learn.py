@@ -55,7 +55,8 @@ def main(argv=None) -> int:
         parts = training_parts(args.cache, n=args.n, seed=args.seed, step_deg=args.step_deg)
         left = args.minutes * 60.0 - (time.perf_counter() - start)
         with tqdm(total=args.trials, desc="trials", unit="trial") as bar:
-            def on_trial(number: int, loss: float, best: float):
+            def on_trial(number: int, loss: float, best: float, score):
+                bar.write(f"trial {number}: loss {loss:.3f} {score.to_dict()}")
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.3f}", best=f"{best:.3f}")
 

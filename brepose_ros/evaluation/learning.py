@@ -194,11 +194,11 @@ class LearnResult:
 
 
 def learn(parts: list[TrainingPart], trials: int, timeout_s: float, latency_factor: float = 1.5, seed: int = 0,
-          on_trial: Callable[[int, float, float], None] | None = None) -> LearnResult:
+          on_trial: Callable[[int, float, float, Score], None] | None = None) -> LearnResult:
     """Search ``search_space()`` with optuna's TPE for the lowest ``Score.loss``; the
     defaults are the first trial and set the latency budget (``latency_factor`` times their
     median time). Stops after ``trials`` trials or once ``timeout_s`` has passed.
-    ``on_trial(number, loss, best_loss)`` after each trial (progress)."""
+    ``on_trial(number, loss, best_loss, score)`` after each trial (progress)."""
     import optuna
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -222,7 +222,7 @@ def learn(parts: list[TrainingPart], trials: int, timeout_s: float, latency_fact
 
     def progress(study, trial):
         if on_trial is not None:
-            on_trial(trial.number, trial.value, study.best_value)
+            on_trial(trial.number, trial.value, study.best_value, scores[trial.number])
 
     study = optuna.create_study(direction="minimize", sampler=optuna.samplers.TPESampler(seed=seed))
     study.add_trial(optuna.trial.create_trial(
