@@ -35,6 +35,7 @@ setup(
         "rosbags>=0.10",
         "pyyaml>=6",
         "tqdm>=4.60",
+        "numba>=0.58",  # nogil kernels of the online path (online/kernels.py, docs/DECISIONS.md)
     ],
     extras_require={
         "ros": [

@@ -37,14 +37,14 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import CONDITIONS, part_step  # noqa: E402
+from bench.accuracy import CONDITIONS, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.workers import WorkerPool  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
-from brepose_ros.synthetic.scenes import generate_scene  # noqa: E402
+from brepose_ros.synthetic.scenes import SceneConfig, generate_scene  # noqa: E402
 from brepose_ros.viewsphere import fibonacci_step  # noqa: E402
 
 STAGES = ("edges", "prefilter", "matching", "refinement", "total")
@@ -159,12 +159,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     cache = REPO / "data" / "bench"
     cache.mkdir(parents=True, exist_ok=True)
-    step = part_step(args.part, cache)
+    step = step_file(args.part, cache)
     scenes = {}
     for name in args.scenes:
         folder = cache / f"scene_{step.stem}_latency_{name}_{args.n}"
         if not (folder / "gt.json").exists():
-            generate_scene(step, folder, args.n, seed=7, config=CONDITIONS[SCENES[name]])
+            generate_scene(step, folder, args.n, seed=7, config=SceneConfig(**CONDITIONS[SCENES[name]]))
         scene = load_scene(folder)
         scenes[name] = (scene, [cv2.imread(str(e.path), cv2.IMREAD_UNCHANGED) for e in scene.entries])
     paths = {views: cached_graph_path(step, cache, fibonacci_step(views), label=f"{views}views")

@@ -22,11 +22,12 @@ from tqdm import tqdm
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import CONDITIONS, part_step  # noqa: E402
+from bench.accuracy import CONDITIONS, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
+from brepose_ros.geometry import rotation_angle_deg  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
-from brepose_ros.synthetic.scenes import generate_scene  # noqa: E402
+from brepose_ros.synthetic.scenes import SceneConfig, generate_scene  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
 
 PARTS = ["sharp_bracket", "rounded_bracket"]
@@ -42,12 +43,12 @@ def poses() -> dict[str, np.ndarray]:
     parts = PARTS + ([str(REAL_PART)] if REAL_PART.exists() else [])
     out = {}
     for name in parts:
-        step = part_step(name, cache)
+        step = step_file(name, cache) if name in PARTS else Path(name)
         estimator = Estimator(AspectGraph.load(cached_graph_path(step, cache, 5.0)))
         for condition in SAME_CONDITIONS:
             folder = cache / f"scene_{step.stem}_{condition}_{N_IMAGES}_{SEED}"
             if not (folder / "gt.json").exists():
-                generate_scene(step, folder, N_IMAGES, seed=SEED, config=CONDITIONS[condition])
+                generate_scene(step, folder, N_IMAGES, seed=SEED, config=SceneConfig(**CONDITIONS[condition]))
             for entry in tqdm(load_scene(folder).entries, desc=f"{step.stem[:20]} {condition}"):
                 image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
                 e = estimator.estimate(image, load_scene(folder).camera)
@@ -74,6 +75,14 @@ def main(argv=None) -> int:
     differ = [k for k in sorted(set(before) | set(now))
               if k not in before or k not in now or not np.array_equal(before[k], now[k], equal_nan=True)]
     print(f"{len(now)} poses, {len(now) - len(differ)} identical to the bit, {len(differ)} differ")
+    both = [k for k in differ if k in before and k in now]
+    flipped = [k for k in both if np.isnan(before[k][0]) != np.isnan(now[k][0])]
+    moved = [k for k in both if k not in flipped and not np.isnan(now[k][0])]
+    if moved:
+        rotation = max(rotation_angle_deg(before[k][:9].reshape(3, 3), now[k][:9].reshape(3, 3)) for k in moved)
+        translation = max(1000 * np.linalg.norm(before[k][9:12] - now[k][9:12]) for k in moved)
+        print(f"  of those found both times, the largest change: {rotation:.2g} deg, {translation:.2g} mm; "
+              f"found in one run only: {len(flipped)}")
     for k in differ[:10]:
         print(f"  {k}: {before.get(k)} -> {now.get(k)}")
     return 1 if differ else 0

@@ -36,6 +36,7 @@ from ..camera import Camera
 from ..params import EstimatorParams
 from .frame import Frame
 from .hypotheses import TetradHypotheses, best_per_region
+from . import kernels
 from .image_edges import detect_edges
 from .refinement import PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups
@@ -84,6 +85,7 @@ class Estimator:
 
     def __init__(self, graph: AspectGraph, params: EstimatorParams | None = None):
         self.graph = graph
+        kernels.warm_up()  # compiled (or loaded from numba's cache) now, not on the first image
         self._params = params or EstimatorParams()
         self._hypotheses = TetradHypotheses(graph, self._params.matching)
         self._refiner = PoseRefiner(graph)

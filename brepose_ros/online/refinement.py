@@ -26,7 +26,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from ..aspect_graph import AspectGraph
@@ -35,6 +34,7 @@ from ..geometry import rot_z, rotation_angle_deg, rotation_between
 from ..params import PoseParams
 from .frame import Frame
 from .hypotheses import Hypothesis
+from .kernels import refine_poses_kernel
 from .lines2d import line_equations, nearest_lines, samples_along
 from .scoring import CLEAR_SCORE, EdgeEvidence, pose_scores
 from .workers import SERIAL, WorkerPool
@@ -135,16 +135,13 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
 
     Iteratively reweighted least squares with Huber weights (``f_scale`` is the Huber
     threshold) times the pair's ``weights`` (K,) if given (1 by default), an analytic
-    Jacobian and the update R <- exp(w) R, t <- t + dt: six
-    unknowns, so each step is a 6x6 solve per pose; far cheaper than a generic solver with
-    numeric derivatives. It runs for every hypothesis and every neighbouring view the
-    climb tries, on about a hundred points each, so numpy's per-call overhead is the cost:
-    the element-wise work of all poses runs as one set of array operations (one column
-    per end point, the cross product written out); only the products that sum over a
-    pose's points, the 6x6 solves (OpenCV's Cholesky) and the rotations go pose by pose,
-    with the very operations a single pose would use, so a pose refines to the same bits
-    alone or in a batch. A pose with fewer than 3 pairs stays where it is; a pose stops
-    once its step vanishes.
+    Jacobian and the update R <- exp(w) R, t <- t + dt: six unknowns, so each step is a 6x6
+    solve per pose; far cheaper than a generic solver with numeric derivatives. It runs for
+    every hypothesis and every neighbouring view the climb tries, on about a hundred points
+    each, so it is a compiled loop (``kernels.refine_poses_kernel``, numba, GIL released):
+    as numpy array operations its per-call overhead was the cost and held the GIL. Each
+    pose refines alone, to the same bits alone or in a batch. A pose with fewer than 3
+    pairs stays where it is; a pose stops once its step vanishes.
 
     ``covariance_out`` (B, 6, 6), if given, receives each pose's covariance from its last
     step (left as it is for a pose that took none): ``sigma^2 (J^T W J)^-1`` with the
@@ -153,55 +150,15 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
     frame, metres and radians: PoseWithCovariance's order and meaning.
     """
     R, t = np.array(R, dtype=float), np.array(t, dtype=float)
-    lines = line_equations(image_2d)  # (K, 3)
     per_pair = model_3d.shape[1]
-    nx, ny, offsets = np.repeat(lines, per_pair, axis=0).T
-    pair_weights = None if weights is None else np.repeat(np.asarray(weights, dtype=float), per_pair)
-    points = model_3d.reshape(-1, 3).T  # (3, N)
-    ends = per_pair * np.asarray(spans)  # point columns of each pose
-    active = np.diff(spans) >= 3
-    jac = np.empty((6, points.shape[1]))  # d residual / d (w, dt), one column per point
-    rows = jac[3:]
-    rotated = np.empty_like(points)
-    moved = np.empty_like(points)
-    for _ in range(iterations):
-        if not active.any():
-            break
-        for b, (lo, hi) in enumerate(zip(ends[:-1], ends[1:])):
-            rotated[:, lo:hi] = R[b] @ points[:, lo:hi]
-            moved[:, lo:hi] = rotated[:, lo:hi] + t[b][:, None]
-        x, y, z = moved
-        z = np.maximum(z, 1e-9)
-        along_normal = nx * (x / z) + ny * (y / z)
-        residual = along_normal + offsets
-        # d residual / d X_cam = g, then chain through X_cam = exp(w) R X + t:
-        # g . (w x RX) = w . (RX x g)
-        np.divide(nx, z, out=rows[0])
-        np.divide(ny, z, out=rows[1])
-        np.divide(along_normal, z, out=rows[2])
-        np.negative(rows[2], out=rows[2])
-        (r0, r1, r2), (g0, g1, g2) = rotated, rows
-        np.subtract(r1 * g2, r2 * g1, out=jac[0])
-        np.subtract(r2 * g0, r0 * g2, out=jac[1])
-        np.subtract(r0 * g1, r1 * g0, out=jac[2])
-        weight = f_scale / np.maximum(np.abs(residual), f_scale)  # Huber: 1 within f_scale
-        point_weights = weight if pair_weights is None else weight * pair_weights
-        weighted = jac * point_weights
-        for b in np.nonzero(active)[0]:
-            lo, hi = ends[b], ends[b + 1]
-            hessian = weighted[:, lo:hi] @ jac[:, lo:hi].T
-            if covariance_out is not None and hi - lo > 6:
-                variance = float(point_weights[lo:hi] @ residual[lo:hi] ** 2) / (hi - lo - 6)
-                covariance_out[b] = variance * np.linalg.pinv(hessian)[TRANSLATION_FIRST][:, TRANSLATION_FIRST]
-            hessian.flat[::7] += 1e-6 * hessian.trace() / 6.0  # damping: degenerate line sets
-            solved, step = cv2.solve(hessian, -(weighted[:, lo:hi] @ residual[lo:hi]), flags=cv2.DECOMP_CHOLESKY)
-            step = step[:, 0]
-            if not solved or not np.isfinite(step).all():
-                active[b] = False
-                continue
-            R[b] = cv2.Rodrigues(step[:3])[0] @ R[b]
-            t[b] = t[b] + step[3:]
-            active[b] = step @ step >= 1e-14
+    pair_weights = np.ones(len(image_2d)) if weights is None else np.ascontiguousarray(weights, dtype=float)
+    normal, variance = np.zeros((len(R), 6, 6)), np.full(len(R), np.nan)
+    refine_poses_kernel(R, t, np.ascontiguousarray(model_3d, dtype=float).reshape(-1, 3), line_equations(image_2d),
+                        per_pair, pair_weights, per_pair * np.asarray(spans, dtype=np.int64), np.diff(spans) >= 3,
+                        float(f_scale), int(iterations), normal, variance)
+    if covariance_out is not None:
+        for b in np.nonzero(np.isfinite(variance))[0]:
+            covariance_out[b] = variance[b] * np.linalg.pinv(normal[b])[TRANSLATION_FIRST][:, TRANSLATION_FIRST]
     return R, t
 
 

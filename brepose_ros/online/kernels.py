@@ -1,0 +1,147 @@
+"""Compiled kernels of the online path: loops that numpy can only run as many small calls,
+each holding the GIL, written once as plain loops and compiled by numba with ``nogil`` so
+that the worker threads (``workers``) really run them side by side.
+
+``cache=True`` keeps the machine code beside this file (``__pycache__``), so a process
+compiles a kernel only once per installation; ``warm_up`` runs each kernel on a tiny input
+so that even that first compilation, or the cache load, happens when the estimator is built,
+not on the first image (docs/DECISIONS.md, threads).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(nogil=True, cache=True)
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix exp([w]x) of a rotation vector (OpenCV's Rodrigues formula)."""
+    theta = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    out = np.eye(3)
+    if theta < 2.220446049250313e-16:
+        return out
+    c, s = math.cos(theta), math.sin(theta)
+    c1 = 1.0 - c
+    x, y, z = w[0] / theta, w[1] / theta, w[2] / theta
+    out[0, 0], out[0, 1], out[0, 2] = c + c1 * x * x, c1 * x * y - s * z, c1 * x * z + s * y
+    out[1, 0], out[1, 1], out[1, 2] = c1 * x * y + s * z, c + c1 * y * y, c1 * y * z - s * x
+    out[2, 0], out[2, 1], out[2, 2] = c1 * x * z - s * y, c1 * y * z + s * x, c + c1 * z * z
+    return out
+
+
+@njit(nogil=True, cache=True)
+def _cholesky_solve(a: np.ndarray, b: np.ndarray, x: np.ndarray) -> bool:
+    """x = a^-1 b for a symmetric positive definite 6x6 (or n x n) a; False if it is not."""
+    n = a.shape[0]
+    low = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            total = a[i, j]
+            for k in range(j):
+                total -= low[i, k] * low[j, k]
+            if i == j:
+                if not total > 0.0:
+                    return False
+                low[i, i] = math.sqrt(total)
+            else:
+                low[i, j] = total / low[j, j]
+    y = np.empty(n)
+    for i in range(n):
+        total = b[i]
+        for k in range(i):
+            total -= low[i, k] * y[k]
+        y[i] = total / low[i, i]
+    for i in range(n - 1, -1, -1):
+        total = y[i]
+        for k in range(i + 1, n):
+            total -= low[k, i] * x[k]
+        x[i] = total / low[i, i]
+    return True
+
+
+@njit(nogil=True, cache=True)
+def refine_poses_kernel(R: np.ndarray, t: np.ndarray, points: np.ndarray, lines: np.ndarray, per_pair: int,
+                        weights: np.ndarray, ends: np.ndarray, active: np.ndarray, f_scale: float, iterations: int,
+                        normal_out: np.ndarray, variance_out: np.ndarray) -> None:
+    """``refinement.refine_poses`` on prepared arrays, R (B, 3, 3) and t (B, 3) in place.
+
+    points (N, 3) model points, ``per_pair`` consecutive ones per image line of lines
+    (K, 3) with weights (K,); pose b owns the points ``ends[b]:ends[b + 1]`` and refines if
+    ``active[b]``. Each pose runs its own loop of the same Gauss-Newton steps as the batched
+    numpy version had (the sums run in another order: the last bits may differ).
+    normal_out (B, 6, 6) and variance_out (B,) receive each pose's last undamped normal
+    matrix J^T W J and weighted residual variance (left as they are for a pose that took
+    no step), from which the caller forms the covariance.
+    """
+    jac = np.empty(6)
+    hessian = np.empty((6, 6))
+    gradient = np.empty(6)
+    step = np.empty(6)
+    turned = np.empty((3, 3))
+    for b in range(len(R)):
+        if not active[b]:
+            continue
+        lo, hi = ends[b], ends[b + 1]
+        for _ in range(iterations):
+            hessian[:] = 0.0
+            gradient[:] = 0.0
+            weighted_squares = 0.0
+            for n in range(lo, hi):
+                px, py, pz = points[n, 0], points[n, 1], points[n, 2]
+                r0 = R[b, 0, 0] * px + R[b, 0, 1] * py + R[b, 0, 2] * pz
+                r1 = R[b, 1, 0] * px + R[b, 1, 1] * py + R[b, 1, 2] * pz
+                r2 = R[b, 2, 0] * px + R[b, 2, 1] * py + R[b, 2, 2] * pz
+                x, y, z = r0 + t[b, 0], r1 + t[b, 1], max(r2 + t[b, 2], 1e-9)
+                k = n // per_pair
+                nx, ny = lines[k, 0], lines[k, 1]
+                along = nx * (x / z) + ny * (y / z)
+                residual = along + lines[k, 2]
+                # d residual / d X_cam = g, chained through X_cam = exp(w) R X + t
+                g0, g1, g2 = nx / z, ny / z, -along / z
+                jac[0], jac[1], jac[2] = r1 * g2 - r2 * g1, r2 * g0 - r0 * g2, r0 * g1 - r1 * g0
+                jac[3], jac[4], jac[5] = g0, g1, g2
+                weight = f_scale / max(abs(residual), f_scale) * weights[k]  # Huber
+                weighted_squares += weight * residual * residual
+                for i in range(6):
+                    wj = weight * jac[i]
+                    gradient[i] -= wj * residual
+                    for j in range(i + 1):
+                        hessian[i, j] += wj * jac[j]
+            for i in range(6):
+                for j in range(i):
+                    hessian[j, i] = hessian[i, j]
+            if hi - lo > 6:
+                normal_out[b] = hessian
+                variance_out[b] = weighted_squares / (hi - lo - 6)
+            damping = 1e-6 * (hessian[0, 0] + hessian[1, 1] + hessian[2, 2] + hessian[3, 3] + hessian[4, 4]
+                              + hessian[5, 5]) / 6.0  # degenerate line sets
+            for i in range(6):
+                hessian[i, i] += damping
+            if not _cholesky_solve(hessian, gradient, step):
+                break
+            finite = True
+            for i in range(6):
+                finite = finite and math.isfinite(step[i])
+            if not finite:
+                break
+            turn = _rodrigues(step[:3])
+            for i in range(3):
+                for j in range(3):
+                    turned[i, j] = turn[i, 0] * R[b, 0, j] + turn[i, 1] * R[b, 1, j] + turn[i, 2] * R[b, 2, j]
+            R[b] = turned
+            for i in range(3):
+                t[b, i] += step[3 + i]
+            if step[0] * step[0] + step[1] * step[1] + step[2] * step[2] + step[3] * step[3] + step[4] * step[4] \
+                    + step[5] * step[5] < 1e-14:
+                break
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel on a tiny input."""
+    R, t = np.eye(3)[None].copy(), np.array([[0.0, 0.0, 1.0]])
+    points = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.1, 0.1, 0.0]])
+    lines = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, -0.1], [0.0, 1.0, -0.1]])
+    refine_poses_kernel(R, t, points, lines, 1, np.ones(4), np.array([0, 4]), np.ones(1, np.bool_), 0.01, 2,
+                        np.zeros((1, 6, 6)), np.zeros(1))
