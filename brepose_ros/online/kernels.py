@@ -145,3 +145,41 @@ def warm_up() -> None:
     lines = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, -0.1], [0.0, 1.0, -0.1]])
     refine_poses_kernel(R, t, points, lines, 1, np.ones(4), np.array([0, 4]), np.ones(1, np.bool_), 0.01, 2,
                         np.zeros((1, 6, 6)), np.zeros(1))
+    segments = np.array([[[0.0, 0.0], [1.0, 0.0]], [[0.0, 0.1], [1.0, 0.1]]])
+    nearest_lines_kernel(segments, segments, 0.5, 0.9, np.empty(2, np.int64), np.empty(2))
+
+
+@njit(nogil=True, cache=True)
+def nearest_lines_kernel(model_2d: np.ndarray, image_2d: np.ndarray, tolerance: float, min_cos: float,
+                         best: np.ndarray, best_cost: np.ndarray) -> None:
+    """``lines2d.nearest_lines`` per model segment: best[i] the image segment whose end
+    points lie closest to model line i (-1 if none qualifies), best_cost[i] that distance.
+    The pairs are those of the former numpy matrices; the distances may differ from theirs
+    in the last bit (BLAS fused its multiply-adds). A pair failing the angle test costs no
+    more arithmetic."""
+    n_image = image_2d.shape[0]
+    i_ux, i_uy = np.empty(n_image), np.empty(n_image)
+    for j in range(n_image):
+        dx, dy = image_2d[j, 1, 0] - image_2d[j, 0, 0], image_2d[j, 1, 1] - image_2d[j, 0, 1]
+        length = max(math.hypot(dx, dy), 1e-12)
+        i_ux[j], i_uy[j] = dx / length, dy / length
+    for i in range(model_2d.shape[0]):
+        best[i], best_cost[i] = -1, np.inf
+        ax, ay = model_2d[i, 0, 0], model_2d[i, 0, 1]
+        dx, dy = model_2d[i, 1, 0] - ax, model_2d[i, 1, 1] - ay
+        length = math.hypot(dx, dy)
+        if not length > 1e-12:
+            continue
+        ux, uy = dx / length, dy / length
+        nx, ny = -uy, ux
+        along_origin, normal_origin = ux * ax + uy * ay, nx * ax + ny * ay
+        for j in range(n_image):
+            if not abs(ux * i_ux[j] + uy * i_uy[j]) > min_cos:
+                continue
+            p0x, p0y, p1x, p1y = image_2d[j, 0, 0], image_2d[j, 0, 1], image_2d[j, 1, 0], image_2d[j, 1, 1]
+            perp = max(abs(nx * p0x + ny * p0y - normal_origin), abs(nx * p1x + ny * p1y - normal_origin))
+            if not (perp < tolerance and perp < best_cost[i]):
+                continue
+            start, end = ux * p0x + uy * p0y - along_origin, ux * p1x + uy * p1y - along_origin
+            if min(max(start, end), length) > max(min(start, end), 0.0):
+                best[i], best_cost[i] = j, perp

@@ -7,6 +7,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from .kernels import nearest_lines_kernel
+
 
 def line_equations(segments: np.ndarray) -> np.ndarray:
     """(K, 3) lines a x + b y + c = 0 with (a, b) a unit normal."""
@@ -27,31 +29,16 @@ def nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, tolerance: float,
     A model segment keeps the image segment whose end points lie closest to the model's
     line, provided that is within ``tolerance``, the directions agree within
     ``max_angle_deg`` (10 by default: a pose a little off turns its projected edges by a
-    few degrees) and the two overlap along the line.
+    few degrees) and the two overlap along the line. A compiled loop
+    (``kernels.nearest_lines_kernel``, GIL released): it runs hundreds of times per image,
+    and as dense (model x image) numpy matrices it was a large share of the refinement.
     """
     if len(model_2d) == 0 or len(image_2d) == 0:
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    n_model, n_image = len(model_2d), len(image_2d)
-    m_dir = model_2d[:, 1] - model_2d[:, 0]
-    m_len = np.hypot(m_dir[:, 0], m_dir[:, 1])
-    m_unit = m_dir / np.maximum(m_len, 1e-12)[:, None]
-    i_dir = image_2d[:, 1] - image_2d[:, 0]
-    i_unit = i_dir / np.maximum(np.hypot(i_dir[:, 0], i_dir[:, 1]), 1e-12)[:, None]
-    cos = np.abs(m_unit @ i_unit.T)
-    # image end points in every model segment's frame (along its direction, along its
-    # normal) by one matmul: columns are all first end points, then all second ones
-    axes = np.concatenate([m_unit, m_unit[:, ::-1] * [-1.0, 1.0]])  # (2M, 2)
-    origins = (axes.reshape(2, n_model, 2) * model_2d[:, 0]).sum(axis=2).reshape(-1, 1)
-    coords = axes @ image_2d.transpose(2, 1, 0).reshape(2, -1) - origins
-    along, normal = coords[:n_model], np.abs(coords[n_model:])
-    perp = np.maximum(normal[:, :n_image], normal[:, n_image:])
-    start, end = along[:, :n_image], along[:, n_image:]
-    overlaps = np.minimum(np.maximum(start, end), m_len[:, None]) > np.maximum(np.minimum(start, end), 0.0)
-    valid = (cos > _cos_deg(max_angle_deg)) & (perp < tolerance) & overlaps & (m_len > 1e-12)[:, None]
-    cost = np.where(valid, perp, np.inf)
-    best = np.argmin(cost, axis=1)
-    best_cost = cost[np.arange(n_model), best]
-    keep = best_cost < np.inf
+    best, best_cost = np.empty(len(model_2d), np.int64), np.empty(len(model_2d))
+    nearest_lines_kernel(np.ascontiguousarray(model_2d, dtype=float), np.ascontiguousarray(image_2d, dtype=float),
+                         float(tolerance), _cos_deg(max_angle_deg), best, best_cost)
+    keep = best >= 0
     return np.nonzero(keep)[0], best[keep], best_cost[keep]
 
 
