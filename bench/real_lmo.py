@@ -20,9 +20,13 @@ Diagnostics of what real light does to the method, per target:
   pose. When a wrong estimate scores higher, the score is fooled; when the truth scores
   higher, the search missed it.
 * ``support grey / colour``: the share of the projected model edges at the true pose that
-  the grey image's Canny edges confirm, and that an edge in any of the three colour
-  channels would.
+  the grey image's Canny edges confirm, and that Canny on the strongest colour channel's
+  gradient (``edges.colour``) would.
 * ``size``: the diagonal of the projected part's bounding box, pixels.
+* ``from near truth``: recall when the estimator's refinement (hypothesis rounds, view
+  climb, polish) starts from the truth turned by ``NEAR_DEG`` about a random axis through
+  the part's centre and shifted by ``NEAR_SHIFT`` of its diameter: what a search that
+  landed on the right view and place would give, on the same image and score.
 
 ``--light`` adds what the photos themselves show, from the true poses of all 8 objects
 rendered into a label image (``synthetic.render.rasterize``): per object the share of
@@ -37,15 +41,16 @@ sizes and mutual occlusions without real light, clutter or sensor, as the contro
 
 ``--crop`` hands the estimator the ground-truth region instead (the visible bounding box
 grown to twice its size, at least 160 px): an oracle for detection, measuring matching
-and pose alone. ``--min-margin-px`` sets ``scoring.EdgeEvidence.MIN_MARGIN_PX`` for the
-run (a class constant, not a parameter, yet): the floor of the margin around a pose inside
-which the score counts unexplained edge pixels. ``--overlays N`` writes N successes and N
-failures per object as PNGs to data/bench/real_lmo/overlays/ (estimate green or red,
-truth blue); every target's figures go to data/bench/real_lmo/results*.json.
+and pose alone. ``--min-margin-px`` sets ``pose.min_margin_pixels`` for the run: the floor
+of the margin around a pose inside which the score counts unexplained edge pixels.
+``--overlays N`` writes N successes and N failures per object as PNGs to
+data/bench/real_lmo/overlays/ (estimate green or red, truth blue); every target's figures
+go to data/bench/real_lmo/results*.json.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -62,6 +67,7 @@ sys.path.insert(0, str(REPO))
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.camera import Camera  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints  # noqa: E402
+from brepose_ros.geometry import normalize  # noqa: E402
 from brepose_ros.evaluation.overlay import draw_overlay, draw_segments  # noqa: E402
 from brepose_ros.offline.cad import Mesh  # noqa: E402
 from brepose_ros.offline.compiler import compile_aspect_graph  # noqa: E402
@@ -69,6 +75,7 @@ from brepose_ros.offline.mesh import load_mesh  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.image_edges import canny_thresholds, detect_edges, to_gray  # noqa: E402
+from brepose_ros.online.refinement import Candidate, PoseRefiner, hypothesis_rounds  # noqa: E402
 from brepose_ros.online.scoring import EdgeEvidence, pose_scores  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
 from brepose_ros.synthetic.render import Placed, rasterize, render  # noqa: E402
@@ -82,6 +89,9 @@ WELL_VISIBLE = 0.8
 ADD_THRESHOLD = 0.1
 #: the oracle crop: the visible box grown by this factor about its centre, at least this wide
 CROP_GROWTH, CROP_MIN_PX = 2.0, 160
+#: the refinement oracle's start: the truth turned by this many degrees and moved by this
+#: share of the diameter, about where a hypothesis from the right view of a 5-degree graph lands
+NEAR_DEG, NEAR_SHIFT = 5.0, 0.02
 #: grey level behind the rendered objects (``--render``)
 RENDER_BACKGROUND = 40.0
 #: overlay colours (BGR): the true pose's edges, the estimate's when correct and when not
@@ -139,15 +149,25 @@ def crop(image: np.ndarray, camera: Camera, box) -> tuple[np.ndarray, Camera]:
     return np.ascontiguousarray(image[y0:y1, x0:x1]), inner
 
 
-def colour_support(image: np.ndarray, model_px: np.ndarray, params, tolerance: float) -> float:
-    """Support of the projected model edges by Canny edges of any colour channel."""
-    channels = [detect_edges(np.ascontiguousarray(image[:, :, c]), params) for c in range(3)]
-    edge_map = np.maximum.reduce([c.edge_map for c in channels])
-    # each pixel's direction from the channel whose gradient is strongest there
-    gx, gy = (np.stack([getattr(c, name) for c in channels]) for name in ("gradient_x", "gradient_y"))
-    strongest = np.argmax(gx * gx + gy * gy, axis=0)[None]
-    gx, gy = (np.take_along_axis(g, strongest, axis=0)[0] for g in (gx, gy))
-    return support(EdgeEvidence(edge_map, gx, gy), model_px, tolerance)
+def edge_evidence(image: np.ndarray, params, colour: bool) -> EdgeEvidence:
+    """The score's evidence of an image with grey or colour edges (``edges.colour``)."""
+    edges = detect_edges(image, dataclasses.replace(params, colour=colour))
+    return EdgeEvidence(edges.edge_map, edges.gradient_x, edges.gradient_y)
+
+
+def refined_from_near_truth(refiner: PoseRefiner, target: Target, frame: Frame, params: EstimatorParams,
+                            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The estimator's refinement of one start near the truth (``from near truth``)."""
+    graph = refiner.graph
+    turn = cv2.Rodrigues(np.deg2rad(NEAR_DEG) * normalize(rng.normal(size=3)))[0]
+    center = target.R @ graph.model_center + target.t + NEAR_SHIFT * graph.model_diameter * normalize(
+        rng.normal(size=3))
+    R = turn @ target.R
+    R, t = refiner.refine(R[None], (center - R @ graph.model_center)[None], frame, params.pose,
+                          hypothesis_rounds(params.pose.refine_iterations))
+    start = Candidate(float(pose_scores(graph, R, t, frame, params.pose)[0]), R[0], t[0], None)
+    best = refiner.best([start], frame, params.pose)
+    return best.R, best.t
 
 
 def support(evidence: EdgeEvidence, model_px: np.ndarray, tolerance: float) -> float:
@@ -167,13 +187,12 @@ def main(argv=None) -> int:
     parser.add_argument("--light", action="store_true", help="also highlights, contrast and Canny thresholds")
     parser.add_argument("--render", action="store_true", help="renderings of the true poses instead of the photos")
     args = parser.parse_args(argv)
-    if args.min_margin_px is not None:
-        EdgeEvidence.MIN_MARGIN_PX = args.min_margin_px
     if not LMO.is_dir():
         print(f"error: {LMO} is not there (../shared beside the clone)", file=sys.stderr)
         return 2
     params = EstimatorParams.load(args.params) if args.params else EstimatorParams()
-    params = params.with_flat({"pose.min_score": 0.0})
+    params = params.with_flat({"pose.min_score": 0.0} | (
+        {"pose.min_margin_pixels": args.min_margin_px} if args.min_margin_px is not None else {}))
     camera = Camera.load(LMO / "camera.json")
     info = json.loads((LMO / "models" / "models_info.json").read_text())
     targets = load_targets(LMO)
@@ -194,7 +213,7 @@ def main(argv=None) -> int:
         model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
         diameter = info[str(obj)]["diameter"] / 1000.0
         symmetric = "symmetries_discrete" in info[str(obj)] or "symmetries_continuous" in info[str(obj)]
-        estimator = Estimator(graph, params)
+        estimator, refiner, rng = Estimator(graph, params), PoseRefiner(graph), np.random.default_rng(obj)
         saved = {True: 0, False: 0}
         for target in (t for t in targets if t.obj == obj and t.frame in images):
             image, cam = images[target.frame], camera
@@ -210,11 +229,15 @@ def main(argv=None) -> int:
             truth_px = cam.project_model(graph.seg_3d[graph.visible_segments(target.R, target.t)], target.R, target.t)
             truth = float(pose_scores(graph, target.R[None], target.t[None], seen, params.pose)[0])
             size = float(np.hypot(*np.ptp(truth_px.reshape(-1, 2), axis=0)))
+            near_R, near_t = refined_from_near_truth(refiner, target, seen, params, rng)
+            near = (model.add_s if symmetric else model.add)(near_R, near_t, target.R, target.t)
             rows.append(dict(obj=obj, frame=target.frame, visible=target.visible, error=error,
                              correct=error < ADD_THRESHOLD, score=estimate.score, truth=truth,
-                             support=support(seen.evidence, truth_px, tolerance),
-                             explained=seen.evidence.explained(truth_px, tolerance), size=size, seconds=seconds,
-                             colour_support=colour_support(image, truth_px, params.edges, tolerance)))
+                             near_correct=near * model.diameter / diameter < ADD_THRESHOLD,
+                             support=support(edge_evidence(image, params.edges, False), truth_px, tolerance),
+                             explained=seen.evidence.explained(truth_px, tolerance, params.pose.min_margin_pixels),
+                             size=size, seconds=seconds,
+                             colour_support=support(edge_evidence(image, params.edges, True), truth_px, tolerance)))
             correct = rows[-1]["correct"]
             if saved[correct] < args.overlays:
                 saved[correct] += 1
@@ -226,10 +249,11 @@ def main(argv=None) -> int:
                 name = f"{NAMES[obj]}_{target.frame:06d}_{'ok' if correct else 'fail'}.png"
                 cv2.imwrite(str(overlays / name), picture)
             print(f"{NAMES[obj]:12s} {target.frame:5d} vis {target.visible:.2f} size {size:4.0f} px  "
-                  f"ADD(-S) {error:6.2f} d  score {estimate.score:.2f} truth {truth:.2f}  {seconds:.2f} s",
+                  f"ADD(-S) {error:6.2f} d  score {estimate.score:.2f} truth {truth:.2f}  "
+                  f"from near truth {near * model.diameter / diameter:5.2f} d  {seconds:.2f} s",
                   file=sys.stderr, flush=True)
         estimator.close()
-    report(rows, args)
+    report(rows, args, params)
     if args.light:
         light_report(targets, images, meshes, camera, params, args.objects)
     run = "".join([f"_{args.params.stem}" if args.params else "", "_crop" if args.crop else "",
@@ -239,21 +263,22 @@ def main(argv=None) -> int:
     return 0
 
 
-def report(rows: list[dict], args) -> None:
-    def recall(selected):
-        return f"{100 * np.mean([r['correct'] for r in selected]):.1f} % ({len(selected)})" if selected else "-"
+def report(rows: list[dict], args, params: EstimatorParams) -> None:
+    def recall(selected, key="correct"):
+        return f"{100 * np.mean([r[key] for r in selected]):.1f} % ({len(selected)})" if selected else "-"
 
     def median(selected, key, scale=1.0, digits=2):
         return f"{scale * np.median([r[key] for r in selected]):.{digits}f}" if selected else "-"
 
     mode = ("renderings" if args.render else "photos") + (", oracle crop" if args.crop else ", whole image")
     mode += f", params {args.params}" if args.params else ""
-    mode += f", margin floor {EdgeEvidence.MIN_MARGIN_PX:g} px"
+    mode += f", margin floor {params.pose.min_margin_pixels:g} px, {'colour' if params.edges.colour else 'grey'} edges"
     print(f"\nLM-O test scene 2, {len(rows)} BOP19 targets in {len({r['frame'] for r in rows})} frames, "
           f"{mode}, {args.step_deg:g} deg views")
     print("| object | ADD(-S) recall | visible >= 0.8 | visible < 0.8 | median size px | median score "
-          "| median truth score | truth support grey / colour | truth explained | score fooled | median s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "| median truth score | truth support grey / colour | truth explained | score fooled | from near truth "
+          "| median s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for obj in [*args.objects, None]:
         mine = [r for r in rows if obj is None or r["obj"] == obj]
         well = [r for r in mine if r["visible"] >= WELL_VISIBLE]
@@ -263,8 +288,7 @@ def report(rows: list[dict], args) -> None:
         print(f"| {NAMES[obj] if obj else '**all**'} | {recall(mine)} | {recall(well)} | {recall(poor)} | "
               f"{median(mine, 'size', digits=0)} | {median(mine, 'score')} | {median(mine, 'truth')} | "
               f"{median(mine, 'support')} / {median(mine, 'colour_support')} | {median(mine, 'explained')} | "
-              f"{fooled} of {len(wrong)} | "
-              f"{median(mine, 'seconds')} |")
+              f"{fooled} of {len(wrong)} | {recall(mine, 'near_correct')} | {median(mine, 'seconds')} |")
     per_image = [sum(r["seconds"] for r in rows if r["frame"] == f) for f in sorted({r["frame"] for r in rows})]
     print(f"\ntime per image (all its targets): median {np.median(per_image):.1f} s; "
           f"per estimate: median {np.median([r['seconds'] for r in rows]):.2f} s")

@@ -50,6 +50,9 @@ class EdgeParams(Ranged):
     detector: str = doc("'hough' (Canny + HoughLinesP, the paper's method) or 'lsd' (OpenCV LSD)", "hough")
     blur_size: int = doc("odd Gaussian kernel size before edge detection; 1 disables the blur", 5, 1, 31)
     blur_sigma: float = doc("Gaussian sigma, pixels; 0 derives it from blur_size", 0.0, 0.0, 20.0)
+    colour: bool = doc(
+        "Canny on the gradient of the strongest colour channel at each pixel instead of the grey image's "
+        "(colour images only)", False)
     canny_noise_factor: float = doc(
         "Canny high threshold in units of the gradient noise level (median gradient / 1.18)", 5.0, 0.1, 100.0)
     canny_low_ratio: float = doc("Canny low threshold as a share of the high one", 0.4, 0.01, 1.0)
@@ -131,6 +134,10 @@ class PoseParams(Ranged):
         "distance of a projected model edge to an image edge still counted as found, pixels", 2.0, 0.1, 50.0)
     min_size_pixels: float = doc(
         "smallest diagonal of the projected part, pixels; smaller poses score 0", 40.0, 0.0, 10000.0)
+    min_margin_pixels: float = doc(
+        "floor of the margin around a pose's projected outline inside which the score counts edge pixels the pose "
+        "does not explain, pixels: stops a small pose that fits one inner feature of the part (a hole) from "
+        "outscoring the whole part", 40.0, 0.0, 1000.0)
     min_score: float = doc("a pose with a lower score is reported as not found", 0.6, 0.0, 1.0)
     warn_error_ratio: float = doc("diagnostics turn WARN above this error ratio", 0.5, 0.0, 1.0)
 

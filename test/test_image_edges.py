@@ -200,6 +200,21 @@ def test_gray_colour_and_depth_variants_agree():
         np.testing.assert_allclose(extract_segments(image), expected, atol=1e-6)
 
 
+def test_colour_edges_find_a_hue_edge_the_grey_image_averages_away():
+    """Polygons of the background's brightness but another hue (BGR 110, 64, 200 on grey 110:
+    0.1 grey levels apart): edges.colour finds every edge on the strongest channel's gradient,
+    the grey image none; a grey picture stored as BGR gives the same segments either way."""
+    hue = [(110.0, 64.0, 200.0)] * len(SCENE)
+    image = np.stack([draw(SCENE, [c[k] for c in hue], noise=2.0, seed=k) for k in range(3)], axis=2)
+    assert abs(float(to_gray(image).mean()) - BACKGROUND) < 1.0
+    colour = extract_segments(image, EdgeParams(colour=True))
+    for edge in true_edges(SCENE):
+        assert_recovered(edge, colour)
+    assert not any(len(along(edge, extract_segments(image))) for edge in true_edges(SCENE))
+    grey = cv2.cvtColor(draw(SCENE, GREYS), cv2.COLOR_GRAY2BGR)
+    np.testing.assert_array_equal(extract_segments(grey, EdgeParams(colour=True)), extract_segments(grey))
+
+
 @pytest.mark.parametrize("image, message", [
     (np.zeros((0, 0), np.uint8), "empty"),
     (np.zeros((0, 5, 3), np.uint8), "empty"),

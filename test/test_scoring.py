@@ -6,6 +6,10 @@ import pytest
 
 from brepose_ros.online import scoring
 from brepose_ros.online.image_edges import EdgeParams, canny_from_gradients, gradients
+from brepose_ros.params import PoseParams
+
+#: the score's margin floor by default (pose.min_margin_pixels)
+MARGIN = PoseParams().min_margin_pixels
 
 
 def random_segments(rng, n, scale=1.0):
@@ -19,16 +23,18 @@ def square(center, side):
 
 def test_a_pose_fitting_only_a_hole_does_not_explain_the_part_around_it():
     """A 60 px window inside a 100 px part: a pose drawing only the window explains its own
-    edges, but the outline's margin of at least MIN_MARGIN_PX takes in the part's outer edges
-    20 px away, which it does not explain; the whole part's pose explains all."""
+    edges, but the outline's margin of at least pose.min_margin_pixels (40) takes in the part's
+    outer edges 20 px away, which it does not explain; the whole part's pose explains all. With
+    a floor of 10 px the margin no longer reaches them."""
     outer, window = square((160, 120), 100), square((160, 120), 60)
     edge_map = np.zeros((240, 320), np.uint8)
     for (x0, y0), (x1, y1) in np.concatenate([outer, window]).astype(int):
         cv2.line(edge_map, (int(x0), int(y0)), (int(x1), int(y1)), 255, 1)
     flat = np.zeros(edge_map.shape, np.float32)
     evidence = scoring.EdgeEvidence(edge_map, flat, flat)
-    assert evidence.explained(window, 2.0) < 0.5
-    assert evidence.explained(np.concatenate([outer, window]), 2.0) == 1.0
+    assert evidence.explained(window, 2.0, MARGIN) < 0.5
+    assert evidence.explained(window, 2.0, 10.0) == 1.0
+    assert evidence.explained(np.concatenate([outer, window]), 2.0, MARGIN) == 1.0
 
 
 def test_an_edge_pixel_pairs_with_a_model_point_only_if_it_runs_alike():
@@ -107,7 +113,7 @@ def reference_explained(edge_map, model_px, tolerance):
     """explained without the bounding-box crop: the whole image, a distance transform."""
     h, w = edge_map.shape
     pts = np.clip(model_px.reshape(-1, 2), -4.0 * max(h, w), 5.0 * max(h, w))
-    hull = scoring.EdgeEvidence.grown_outline(pts)
+    hull = scoring.EdgeEvidence.grown_outline(pts, MARGIN)
     outline = np.zeros((h, w), np.uint8)
     cv2.fillConvexPoly(outline, np.round(hull).astype(np.int32), 1)
     inside = (edge_map > 0) & (outline > 0)
@@ -125,7 +131,7 @@ def test_edge_evidence_matches_the_distance_transform_definitions(evidence_image
     for model_px in models:
         assert evidence.supports(model_px, np.array([0, len(model_px)]), tolerance)[0] == pytest.approx(
             reference_support(edge_map, gray, model_px, tolerance), abs=1e-12)
-        assert evidence.explained(model_px, tolerance) == pytest.approx(
+        assert evidence.explained(model_px, tolerance, MARGIN) == pytest.approx(
             reference_explained(edge_map, model_px, tolerance), abs=1e-12)
 
 

@@ -62,7 +62,7 @@ def detect_edges(image: np.ndarray, params: EdgeParams = EdgeParams()) -> ImageE
     if gray.max() == gray.min():
         flat = np.zeros(gray.shape, np.float32)
         return ImageEdges(gray, flat, flat, np.zeros(gray.shape, np.uint8), np.zeros((0, 2, 2)))
-    dx, dy = gradients(gray, params)
+    dx, dy = colour_gradients(image, params) if params.colour and _is_colour(image) else gradients(gray, params)
     edges = canny_from_gradients(dx, dy, params)
     if params.detector == "lsd":
         merged = merge_segments(lsd_segments(gray, params), params)
@@ -127,6 +127,23 @@ def gradients(gray: np.ndarray, params: EdgeParams) -> tuple[np.ndarray, np.ndar
     if params.blur_size > 1:
         gray = cv2.GaussianBlur(gray, (params.blur_size, params.blur_size), params.blur_sigma)
     return cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+
+
+def colour_gradients(image: np.ndarray, params: EdgeParams) -> tuple[np.ndarray, np.ndarray]:
+    """Sobel derivatives (x, y) of a BGR(A) image, at each pixel those of the colour channel
+    whose gradient is strongest there: a coloured part on a background of like brightness
+    (a yellow duck on a light board) has a hue edge that the grey image averages away."""
+    channels = [gradients(to_gray(np.ascontiguousarray(image[:, :, c])), params) for c in range(3)]
+    dx, dy = np.stack([c[0] for c in channels]), np.stack([c[1] for c in channels])
+    strongest = np.argmax(dx * dx + dy * dy, axis=0)[None]
+    return np.take_along_axis(dx, strongest, axis=0)[0], np.take_along_axis(dy, strongest, axis=0)[0]
+
+
+def _is_colour(image: np.ndarray) -> bool:
+    """Three or four channels that are not all equal (a grey picture stored as BGR is grey)."""
+    if image.ndim != 3 or image.shape[2] < 3:
+        return False
+    return not (np.array_equal(image[:, :, 0], image[:, :, 1]) and np.array_equal(image[:, :, 1], image[:, :, 2]))
 
 
 def canny_edges(gray: np.ndarray, params: EdgeParams) -> np.ndarray:

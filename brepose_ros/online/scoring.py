@@ -61,7 +61,7 @@ def pose_scores(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame"
     spans = np.cumsum([0] + [len(m) for m in drawn])
     confirmed = frame.evidence.supports(np.concatenate(drawn), spans, tolerance)
     for b, c, model_px in zip(scored, confirmed, drawn):
-        explained = frame.evidence.explained(model_px, tolerance)
+        explained = frame.evidence.explained(model_px, tolerance, p.min_margin_pixels)
         scores[b] = 2 * c * explained / max(c + explained, 1e-12)
     return scores
 
@@ -109,7 +109,7 @@ class EdgeEvidence:
       to it).
     * ``explained`` (image -> model): share of the edge pixels inside the projected part's
       convex outline, grown by ``OUTLINE_MARGIN``, lying within ``tolerance`` of a
-      projected model edge. The margin, at least ``MIN_MARGIN_PX``, is what stops a small
+      projected model edge. The margin, at least ``min_margin_px``, is what stops a small
       pose that fits one inner feature (a window of the part) from explaining everything
       it covers: a relative margin alone grows with the pose, and poses 5x too far away
       that sat on one hole of the part outscored the true pose on clean images.
@@ -129,7 +129,6 @@ class EdgeEvidence:
     #: the outline grows by a fifth, so that edges just outside a pose that projects a
     #: little small still count against it
     OUTLINE_MARGIN = 0.2
-    MIN_MARGIN_PX = 40.0
 
     def __init__(self, edge_map: np.ndarray, gradient_x: np.ndarray, gradient_y: np.ndarray):
         """From Canny's edge map and the image gradient it was found on (``ImageEdges``)."""
@@ -212,21 +211,21 @@ class EdgeEvidence:
         return edge.astype(float), found
 
     @classmethod
-    def grown_outline(cls, points: np.ndarray) -> np.ndarray:
+    def grown_outline(cls, points: np.ndarray, min_margin_px: float) -> np.ndarray:
         """Convex hull of the points, grown about its centre by the margin (class doc)."""
         hull = convex_hull(points)
         center = hull.mean(axis=0)
         radius = max(float(np.sqrt(np.mean(np.sum((hull - center) ** 2, axis=1)))), 1.0)
-        return center + (1.0 + max(cls.OUTLINE_MARGIN, cls.MIN_MARGIN_PX / radius)) * (hull - center)
+        return center + (1.0 + max(cls.OUTLINE_MARGIN, min_margin_px / radius)) * (hull - center)
 
-    def explained(self, model_px: np.ndarray, tolerance_px: float) -> float:
+    def explained(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float) -> float:
         if len(model_px) == 0:
             return 0.0
         h, w = self.shape
         # a pose far off projects far outside: clipped a few image sizes out, the hull stays
         # what it covers of the image and its corners fit OpenCV's int32 points
         pts = np.clip(np.asarray(model_px, np.float64).reshape(-1, 2), -4.0 * max(h, w), 5.0 * max(h, w))
-        hull = self.grown_outline(pts)
+        hull = self.grown_outline(pts, min_margin_px)
         # work in the outline's bounding box only: a part rarely fills the image
         pad = int(np.ceil(tolerance_px)) + 1
         x0, y0 = np.maximum(np.floor(hull.min(axis=0)).astype(int) - pad, 0)
