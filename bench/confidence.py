@@ -4,7 +4,7 @@ calibrated `pose.min_score`.
     python bench/confidence.py [--n 12] [--parts sharp_bracket rounded_bracket ...] [--check-parts shaft ...]
                                [--params FILE.yaml] [--precision 0.95] [--plot docs/figures/precision_recall.png]
 
-Each part's estimator sees images of its part (positives: clean, and off-centre with 30 %
+Each part's estimator sees images of its part (positives: clean, and off-centre with 20 %
 occlusion among clutter), where a detection is correct when the pose succeeds (rotation
 < 5 deg, translation < 5 % of the diameter), and the clean images of every *other* part
 (scenes without it), where any detection is wrong. Pooled over the parts, for each
@@ -37,7 +37,7 @@ from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
 from brepose_ros.synthetic.scenes import SceneConfig  # noqa: E402
 
-POSITIVE_CONDITIONS = ("clean", "occl30+clutter")
+POSITIVE_CONDITIONS = ("clean", "occl20+clutter")
 
 
 class Collector:

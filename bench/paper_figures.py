@@ -200,7 +200,7 @@ def main(argv=None) -> int:
             after = np.mean([p.mean_er for (_, m, c), pts in data.items() if m == method and c == "learned"
                              for p in pts])
             print(f"\n{method}: mean er {before:.3f} before, {after:.3f} after learning "
-                  f"({100 * (before - after) / before:+.0f} % lower)")
+                  f"({100 * (after - before) / before:+.0f} %)")
     for estimator in bench.estimators.values():
         estimator.close()
     return 0
