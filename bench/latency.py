@@ -9,8 +9,10 @@ Three tables, each measured within one run with the settings alternating image b
 alike and the ratios stay fair while the absolute times are upper bounds:
 
 - workers: ``matching.workers`` threads for one image; ms per image (median), images/s
-  (1 / mean), the speed-up against the first setting (ratio of the summed times) and
-  whether every setting gave the same poses to the bit;
+  (1 / mean), the speed-up against the first setting (ratio of the summed times), whether
+  every setting gave the same poses to the bit, and the CPU time per image of all threads
+  (mean; on a machine busy with other jobs it is what one worker would take alone, since
+  waiting for a core costs wall time but no CPU time);
 - parts: P estimators (P copies of the graph, each with ``--part-workers`` threads) on the
   same image at once, one thread per part as the node runs them; wall time per image and
   its ratio to one part;
@@ -83,8 +85,9 @@ def workers_table(graph: AspectGraph, scene, images, workers: list[int], rounds:
         e.estimate(images[0], scene.camera)  # each pool's first image is not the steady state
 
     def run(w, image):
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         estimate = estimators[w].estimate(image, scene.camera)
+        estimate.timings["cpu"] = time.process_time() - cpu
         return time.perf_counter() - start, estimate
 
     results = alternate(workers, images, rounds, run)
@@ -97,8 +100,9 @@ def workers_table(graph: AspectGraph, scene, images, workers: list[int], rounds:
         seconds = [s for s, _ in results[w]]
         stages = [1000.0 * float(np.median([e.timings.get(k, 0.0) for _, e in results[w]])) for k in STAGES[:-1]]
         ms, rate = summary(seconds)
+        cpu = 1000.0 * float(np.mean([e.timings["cpu"] for _, e in results[w]]))
         rows.append(f"| {w} | {' | '.join(f'{m:.0f}' for m in stages)} | {ms:.0f} | {rate:.1f} | "
-                    f"{base / sum(seconds):.2f} | {'yes' if same else 'NO'} |")
+                    f"{base / sum(seconds):.2f} | {'yes' if same else 'NO'} | {cpu:.0f} |")
     return rows
 
 
@@ -176,8 +180,8 @@ def main(argv=None) -> int:
 
     if "workers" in args.tables:
         print("\n| views | scene | workers | " + " | ".join(f"{s} ms" for s in STAGES[:-1])
-              + " | ms/image | images/s | speed-up | same poses |")
-        print("|" + "---|" * 11)
+              + " | ms/image | images/s | speed-up | same poses | CPU ms/image |")
+        print("|" + "---|" * 12)
         for views, path in paths.items():
             graph = AspectGraph.load(path)
             for name, (scene, images) in scenes.items():
