@@ -19,6 +19,14 @@ from brepose_ros.evaluation.metrics import write_predictions
 from brepose_ros.ros.replay import PoseRecorder, RosSession, scene_names
 
 
+def answer_times(recorder: PoseRecorder) -> list[float]:
+    """When the diagnostics of each answered image arrived; the node's input status, published
+    once a second while no image arrives, answers none (else --idle would never run out)."""
+    listener = recorder.diagnostics
+    return [t for stamp, t in list(listener.arrived.items())
+            if any(not status.name.endswith(": input") for status in listener.by_stamp[stamp].status)]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-o", "--output", required=True, help="predictions JSON to write")
@@ -42,10 +50,10 @@ def main() -> int:
         print(f"recording {pose_topic} and /diagnostics; Ctrl-C to stop", file=sys.stderr)
         try:
             while not stop.wait(0.2):
-                arrived = recorder.diagnostics.arrived
+                arrived = answer_times(recorder)
                 if args.count and len(arrived) >= args.count:
                     break
-                if arrived and time.perf_counter() - max(arrived.values()) > args.idle:
+                if arrived and time.perf_counter() - max(arrived) > args.idle:
                     break
         except KeyboardInterrupt:
             pass

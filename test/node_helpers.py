@@ -5,6 +5,7 @@ probe node that publishes images and collects what the estimator node answers.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 # discovery off: nodes in this process still talk, other developers' test runs are not heard
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")
@@ -23,6 +24,17 @@ from brepose_ros.ros.replay import DiagnosticsListener, RosSession, wait_until  
 
 TIMEOUT = 10.0
 FRAME = "camera_optical_frame"
+REPO = Path(__file__).resolve().parents[1]
+
+
+def ros_env(**extra) -> dict:
+    """The environment of a node or tool in another process: discovery on (two processes talk;
+    give a random ROS_DOMAIN_ID so that parallel runs do not hear each other), the ROS wheels'
+    bootstrap variables cleared (../shared/ROS2_ON_PIP.md), the clone importable."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "_ROS_WHEELS_BOOTSTRAP_COMPLETE", "LD_LIBRARY_PATH")}
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
+    return {**env, **extra}
 
 
 class Harness(RosSession):

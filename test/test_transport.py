@@ -8,7 +8,6 @@ the estimator answers them at once (no edges), so the test measures the transpor
 """
 from __future__ import annotations
 
-import os
 import random
 import re
 import subprocess
@@ -21,6 +20,7 @@ import pytest
 
 from brepose_ros.camera import Camera
 from brepose_ros.ros.bags import write_bag
+from node_helpers import ros_env
 
 REPO = Path(__file__).resolve().parents[1]
 LARGE_IMAGES_XML = REPO / "config" / "fastdds_large_images.xml"
@@ -29,14 +29,6 @@ SIZES = {"640x480": (640, 480, 30), "1920x1080": (1920, 1080, 10)}  # width, hei
 TIMEOUT = 30.0
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
-
-
-def ros_env(**extra) -> dict:
-    """A random domain so that parallel runs do not hear each other; discovery on (two processes)."""
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "_ROS_WHEELS_BOOTSTRAP_COMPLETE", "LD_LIBRARY_PATH")}
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
-    return {**env, **extra}
 
 
 @pytest.fixture(scope="module")
