@@ -63,6 +63,7 @@ setup(
             "brepose-bag = brepose_ros.cli.bag:main",
             "brepose-estimate = brepose_ros.cli.estimate:main",
             "brepose-eval = brepose_ros.cli.evaluate:main",
+            "brepose-threshold = brepose_ros.cli.threshold:main",
             "brepose-learn = brepose_ros.cli.learn:main",
             "estimator = brepose_ros.ros.node:main",
         ],

@@ -1,7 +1,7 @@
 """docs/tutorial.md and the README's commands, run as written, so that they cannot rot.
 
 Every ```bash block of the tutorial runs, in order, as one bash script in one folder laid out
-like the clone (bench/, launch_free_scripts/, config/ linked in). What a user brings is made
+like the clone (launch_free_scripts/ and config/ linked in). What a user brings is made
 from built-in parts: ``my_part.step`` (the sharp bracket), ``my_part.stl`` (a box in mm) and
 ``photos/`` (two renders of the part). A few numbers are changed (``SCALING``: coarse view
 spheres and two images so that the walk stays short, patience for a loaded machine). The blocks
@@ -31,7 +31,7 @@ TUTORIAL = REPO / "docs" / "tutorial.md"
 SCALING = [
     ("brepose-compile ", "brepose-compile --step-deg 20 --workers 1 "),
     ("--n 8 ", "--n 2 "),
-    ("--n 12", "--n 2 --step-deg 20 --others cylinder"),
+    ("--n 12 -o", "--n 2 --others builtin:box --precision 0 -o"),  # two images per scene decide nothing
     ("--idle 10", "--idle 3"),
     ("--reliability reliable", "--reliability reliable --timeout 60"),
 ]
@@ -70,7 +70,7 @@ def user_folder(tmp_path_factory, builtin_step):
     from brepose_ros.synthetic.scenes import generate_scene
 
     folder = tmp_path_factory.mktemp("tutorial")
-    for name in ("bench", "launch_free_scripts", "config"):
+    for name in ("launch_free_scripts", "config"):
         (folder / name).symlink_to(REPO / name)
     shutil.copy(builtin_step("sharp_bracket"), folder / "my_part.step")
     trimesh.creation.box((60.0, 40.0, 25.0)).export(folder / "my_part.stl")
@@ -81,13 +81,6 @@ def user_folder(tmp_path_factory, builtin_step):
     return folder
 
 
-def bench_cache_of_my_part():
-    """bench/confidence.py caches scenes and graphs in data/bench by file name; the tutorial's
-    my_part must neither reuse nor leave one there."""
-    for path in (REPO / "data" / "bench").glob("*my_part*"):
-        shutil.rmtree(path) if path.is_dir() else path.unlink()
-
-
 def test_every_tutorial_command_runs(user_folder):
     text = TUTORIAL.read_text()
     for written, _ in SCALING:
@@ -95,7 +88,6 @@ def test_every_tutorial_command_runs(user_folder):
     env = ros_env(ROS_DOMAIN_ID=str(random.randint(100, 200)),
                   PATH=f"{Path(sys.executable).parent}:{ros_env()['PATH']}")
     background, outputs = [], {}
-    bench_cache_of_my_part()
     try:
         for index, block in enumerate(bash_blocks(text)):
             script = block
@@ -122,7 +114,6 @@ def test_every_tutorial_command_runs(user_folder):
         for process, _ in background:
             process.terminate()
             process.wait(timeout=30)
-        bench_cache_of_my_part()
 
     def output(prefix):
         return next(text for command, text in outputs.items() if command.startswith(prefix))
@@ -132,7 +123,7 @@ def test_every_tutorial_command_runs(user_folder):
     assert re.search(rf"^\d of {IMAGES} found \(\d+ %\); wrote poses.json and overlays in checks$",
                      output("brepose-estimate"), re.MULTILINE)
     assert len(list((user_folder / "checks").glob("*.png"))) == IMAGES
-    assert "| 0.80 |" in output("python bench/confidence.py")
+    assert "| 0.80 |" in output("brepose-threshold") and "min_score:" in (user_folder / "my_part.yaml").read_text()
     assert f"the node answered {IMAGES}" in output("python launch_free_scripts/play_bag.py")
     recorded = json.loads((user_folder / "node_poses.json").read_text())
     assert sorted(p["image"] for p in recorded) == sorted(f"images/{i:06d}.png" for i in range(IMAGES))

@@ -18,7 +18,7 @@ from brepose_ros.aspect_graph import AspectGraph
 
 REPO = Path(__file__).resolve().parents[1]
 #: console scripts whose modules import the CAD stack at import time
-CAD_COMMANDS = {"compile", "render", "evaluate"}
+CAD_COMMANDS = {"compile", "render", "evaluate", "threshold"}
 
 
 def test_package_xml_and_the_installed_package_carry_the_package_version():

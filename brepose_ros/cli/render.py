@@ -60,6 +60,16 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+def model_step(model: str, folder: Path) -> Path:
+    """The STEP file of ``model``: a path as given, or a built-in part exported into ``folder``."""
+    if not model.startswith(BUILTIN_PREFIX):
+        return Path(model)
+    name = model[len(BUILTIN_PREFIX):]
+    if name not in shapes.BUILTIN:
+        raise ValueError(f"unknown built-in part {name!r}; choose from {', '.join(shapes.BUILTIN)}")
+    return shapes.export_step(name, folder / f"{name}.step")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
 
@@ -71,12 +81,7 @@ def main(argv: list[str] | None = None) -> int:
                              noise=args.noise, blur=args.blur, color=args.color, look=args.look)
         started = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
-            step = Path(args.model)
-            if args.model.startswith(BUILTIN_PREFIX):
-                name = args.model[len(BUILTIN_PREFIX):]
-                if name not in shapes.BUILTIN:
-                    raise ValueError(f"unknown built-in part {name!r}; choose from {', '.join(shapes.BUILTIN)}")
-                step = shapes.export_step(name, Path(tmp) / f"{name}.step")
+            step = model_step(args.model, Path(tmp))
             scene = generate_scene(step, args.outdir, args.n, args.seed, config, progress=not args.quiet)
         occlusion = np.mean([e.occlusion for e in scene.entries])
         print(f"{scene.folder}: {len(scene.entries)} images, mean occlusion {occlusion:.3f}, "
