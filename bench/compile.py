@@ -73,7 +73,7 @@ def run(step: Path, views: int, method: str, workers: int, folder: Path) -> dict
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--parts", nargs="*", help="only parts whose file name contains one of these")
     p.add_argument("--views", type=int, default=500)
     p.add_argument("--large-views", type=int, default=2500)

@@ -97,7 +97,7 @@ def node_row(name: str, graph_path: Path, images, camera, executor_factory, mode
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--demo", type=Path, default=Path("out/demo"),
                         help="output folder of launch_free_scripts/demo.py (graph and scene)")
     parser.add_argument("--repeat", type=int, default=1, help="passes over the scene's images")

@@ -475,7 +475,7 @@ def project_main(args) -> int:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--role", choices=("project", "peer"), default="project", help=argparse.SUPPRESS)
     p.add_argument("--part", default="sharp_bracket", help="built-in part (brepose_ros.synthetic.shapes)")
     p.add_argument("--images", type=int, default=12, help="images per scene")

@@ -68,7 +68,7 @@ def percentile(values: list[float], q: float) -> float:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--demo", type=Path, default=Path("out/demo"),
                         help="output folder of launch_free_scripts/demo.py (graph and 640x480 scene)")
     parser.add_argument("--minutes", type=float, default=10.0, help="length of the soak (default 10)")

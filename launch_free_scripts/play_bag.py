@@ -24,7 +24,7 @@ from brepose_ros.ros.replay import TRANSPORTS, Player, RosSession, bag_frames
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(prog="play_bag", description=__doc__.splitlines()[0])
+    parser = ArgumentParser(prog="play_bag", description=__doc__)
     parser.add_argument("bag", help="rosbag2 folder (mcap or sqlite3)")
     parser.add_argument("--mode", choices=("lockstep", "rate"), default="lockstep")
     parser.add_argument("--speed", type=positive_float, default=1.0, help="rate mode: playback speed factor")

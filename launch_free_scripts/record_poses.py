@@ -28,7 +28,7 @@ def answer_times(recorder: PoseRecorder) -> list[float]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-o", "--output", required=True, help="predictions JSON to write")
     parser.add_argument("--part", help="part name when the node estimates several (topic ~/<part>/pose)")
     parser.add_argument("--node", default="estimator", help="the estimator node's name")

@@ -76,7 +76,7 @@ def process_commands(args, folder: Path) -> list[list[str]]:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     ours, ros_args = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
-    parser = ArgumentParser(prog="run_partitioned", description=__doc__.splitlines()[0])
+    parser = ArgumentParser(prog="run_partitioned", description=__doc__)
     parser.add_argument("--processes", type=positive_int, default=2, help="estimator processes (K)")
     parser.add_argument("--graphs", nargs="+", required=True, help="aspect graph files, one per part")
     parser.add_argument("--part-names", nargs="*", help="one name per graph (default: the file names)")
