@@ -101,3 +101,14 @@ def test_camera_info_raw_uses_k_and_d_rectified_uses_p():
     info.p = [0.0] * 12
     with pytest.raises(CameraError, match="P is all zero"):
         camera_from_info(info, rectified=True)
+
+
+@pytest.mark.parametrize("encoding, order", [("bgr8", [0, 1, 2]), ("rgb8", [2, 1, 0]), ("bgra8", [0, 1, 2, 3]),
+                                             ("rgba8", [2, 1, 0, 3])])
+def test_colour_encodings_decode_to_the_same_bgr_image(encoding, order):
+    """A colour photo arrives as rgb8 as often as bgr8 (issue 13): every 8-bit colour order
+    decodes to the same BGR pixels, alpha dropped."""
+    bgr = np.random.default_rng(0).integers(0, 256, (6, 5, 3), dtype=np.uint8)
+    pixels = np.concatenate([bgr, np.full((6, 5, 1), 77, np.uint8)], axis=2)[..., order]
+    image = decode_image(encoding, 6, 5, 5 * len(order), np.ascontiguousarray(pixels).tobytes())
+    np.testing.assert_array_equal(image, bgr)
