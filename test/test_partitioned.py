@@ -15,7 +15,7 @@ import pytest
 
 from brepose_ros.ros.bags import write_bag
 from brepose_ros.synthetic.scenes import SceneConfig, generate_scene
-from test_transport import PLAY_BAG, REPO, TIMEOUT, ros_env
+from test_transport import PLAY_BAG, REPO, START_TIMEOUT, TIMEOUT, ros_env
 
 RUN_PARTITIONED = REPO / "launch_free_scripts" / "run_partitioned.py"
 
@@ -52,7 +52,7 @@ def test_two_processes_each_answer_their_part(sample_step, tmp_path):
                                 str(tmp_path / "left.brepose.npz"), str(tmp_path / "right.brepose.npz"), "--",
                                 *remaps], stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, cwd=tmp_path)
     try:
-        deadline = time.monotonic() + TIMEOUT
+        deadline = time.monotonic() + START_TIMEOUT
         while log.read_text().count("estimating") < 2:
             assert process.poll() is None and time.monotonic() < deadline, log.read_text()
             time.sleep(0.1)
