@@ -142,11 +142,48 @@ class PoseParams(Ranged):
     warn_error_ratio: float = doc("diagnostics turn WARN above this error ratio", 0.5, 0.0, 1.0)
 
 
+GENERATORS = ("tetrad", "search", "both")
+
+
+@dataclass(frozen=True)
+class SearchParams(Ranged):
+    """The hypothesis generators: the paper's region-normalised tetrads and the template
+    search over gradient directions (``online/search.py``)."""
+
+    generators: str = doc(
+        "hypothesis generators: 'tetrad' (regions + bipartite matching), 'search' (templates slid over the "
+        "image, no region normalised) or 'both'", "tetrad")
+    coarse_factor: int = doc("the search's coarse grid: one cell per this many pixels", 4, 1, 16)
+    spread: int = doc("cells a template point may miss its edge by on the coarse grid", 1, 0, 4)
+    template_points: int = doc("points per template, sampled evenly along a view's edges", 48, 8, 256)
+    coarse_view_step_deg: float = doc(
+        "spacing of the views the search tries (graph views nearest a golden spiral this sparse), degrees",
+        25.0, 2.0, 60.0)
+    angles: int = doc("in-plane angles tried per view, evenly over 360 degrees", 24, 1, 360)
+    min_size_fraction: float = doc("smallest part diameter searched, share of the image diagonal", 0.2, 0.01, 2.0)
+    max_size_fraction: float = doc("largest part diameter searched, share of the image diagonal", 0.75, 0.01, 4.0)
+    size_step: float = doc("ratio between successive part diameters searched", 1.25, 1.01, 2.0)
+    min_coarse_share: float = doc(
+        "a position is scored only if this share of a template's points hit an edge", 0.4, 0.0, 1.0)
+    hypotheses: int = doc("best distinct templates handed to the refinement", 32, 1, 256)
+    per_position: int = doc("at most this many templates kept about one position", 6, 1, 64)
+    distinct_fraction: float = doc(
+        "templates closer than this share of their size are about one position", 0.2, 0.0, 1.0)
+
+    def __post_init__(self):
+        if self.generators not in GENERATORS:
+            raise ValueError(f"generators must be one of {GENERATORS}, got {self.generators!r}")
+        super().__post_init__()
+        if self.max_size_fraction < self.min_size_fraction:
+            raise ValueError("max_size_fraction must not be below min_size_fraction")
+
+
 @dataclass(frozen=True)
 class EstimatorParams:
     edges: EdgeParams = field(default_factory=EdgeParams)
     matching: MatchParams = field(default_factory=MatchParams)
     pose: PoseParams = field(default_factory=PoseParams)
+    search: SearchParams = field(default_factory=SearchParams)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

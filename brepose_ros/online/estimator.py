@@ -41,6 +41,7 @@ from .image_edges import detect_edges
 from .refinement import PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups
 from .scoring import CLEAR_SCORE, edge_pairs
+from .search import TemplateSearch
 from .workers import WorkerPool, resolve_workers
 
 
@@ -93,6 +94,7 @@ class Estimator:
         #: pools replaced by a parameter change, closed once no image uses them
         self._retired: list[WorkerPool] = []
         self._lock = threading.Lock()
+        self._search = TemplateSearch(graph, self._params.search)
 
     @property
     def params(self) -> EstimatorParams:
@@ -100,11 +102,13 @@ class Estimator:
 
     @params.setter
     def params(self, value: EstimatorParams) -> None:
-        """New parameters apply from the next image; view features and worker threads are
-        rebuilt if needed (never torn down under an image in flight)."""
+        """New parameters apply from the next image; view features, templates and worker
+        threads are rebuilt if needed (never torn down under an image in flight)."""
         with self._lock:
             if value.matching.max_model_segments != self._params.matching.max_model_segments:
                 self._hypotheses = TetradHypotheses(self.graph, value.matching)
+            if TemplateSearch.library_changes(self._params.search, value.search):
+                self._search = TemplateSearch(self.graph, value.search)
             if resolve_workers(value.matching.workers) != self._pool.size:
                 self._retired.append(self._pool)
                 self._pool = WorkerPool(value.matching.workers)
@@ -124,7 +128,7 @@ class Estimator:
         whose size disagrees with the camera's.
         """
         with self._lock:  # one consistent set for the whole image, whatever changes meanwhile
-            p, hypotheses, pool = self._params, self._hypotheses, self._pool
+            p, hypotheses, search, pool = self._params, self._hypotheses, self._search, self._pool
             retired, self._retired = self._retired, []
         for old in retired:  # the image that used them has finished: estimate is not re-entrant
             old.close()
@@ -144,10 +148,14 @@ class Estimator:
         if paper_only:
             return self._paper_estimate(groups, frame, p, hypotheses, pool, not_found, clock)
         candidates = []
+        generators = p.search.generators
+        if generators in ("search", "both"):
+            candidates += self._refiner.verify(search.hypotheses(frame, p.search, pool), frame, p.pose, pool)
+            clock = _lap(timings, "search", clock)
         # the whole image first: when it holds a clear pose, the clusters (pieces of the
         # same part, or the part among clutter) cannot add one, and their pre-filter,
         # matching and verification are saved
-        for batch in (groups[:1], groups[1:]):
+        for batch in (groups[:1], groups[1:]) if generators != "search" else ():
             if not batch or any(c.score >= CLEAR_SCORE for c in candidates):
                 break
             regions = [r for r in (normalised_region(indices, frame, p.matching) for indices in batch)

@@ -159,14 +159,6 @@ class EdgeEvidence:
         """The model -> image share (class doc) of several poses at once, segments
         ``spans[b]:spans[b + 1]`` of ``model_px`` (pixels) belonging to pose b: the look-ups
         of all poses run together, each pose's sums separately (the same sums as alone)."""
-        if tolerance_px not in self._near_like:
-            # one pixel of False around the image: points outside it are clipped onto that
-            # border instead of being masked out (a mask costs several array operations)
-            ball = chamfer_ball(tolerance_px)
-            near = np.zeros((self.BINS, self.shape[0] + 2, self.shape[1] + 2), np.uint8)
-            for b, like in enumerate(self.like_edges):
-                near[b, 1:-1, 1:-1] = cv2.dilate(like, ball)
-            self._near_like[tolerance_px] = near.view(bool)  # 0/1 bytes, dilated from 0/1
         h, w = self.shape
         delta = model_px[:, 1] - model_px[:, 0]
         lengths = np.sqrt((delta * delta).sum(axis=1))
@@ -176,13 +168,26 @@ class EdgeEvidence:
         pts = model_px[:, 0][seg_idx] + frac[:, None] * delta[seg_idx]
         weight = (lengths / counts)[seg_idx]
         x, y = np.clip(np.rint(pts).astype(int) + 1, 0, [w + 1, h + 1]).T
-        near = self._near_like[tolerance_px][self._bins_of(delta)[seg_idx], y, x]
+        near = self.near_like(tolerance_px)[self._bins_of(delta)[seg_idx], y, x]
         out = np.zeros(len(spans) - 1)
         point_spans = np.concatenate([[0], np.cumsum(counts)])[spans]
         for b, (lo, hi) in enumerate(zip(point_spans[:-1], point_spans[1:])):
             if hi > lo:
                 out[b] = weight[lo:hi][near[lo:hi]].sum() / max(weight[lo:hi].sum(), 1e-12)
         return out
+
+    def near_like(self, tolerance_px: float) -> np.ndarray:
+        """(BINS, H + 2, W + 2) bool: per direction bin, the pixels within ``tolerance_px`` of
+        a like edge pixel (``like_edges`` dilated by the chamfer ball), with one pixel of
+        False around the image: points outside it are clipped onto that border instead of
+        being masked out (a mask costs several array operations). Cached per tolerance."""
+        if tolerance_px not in self._near_like:
+            ball = chamfer_ball(tolerance_px)
+            near = np.zeros((self.BINS, self.shape[0] + 2, self.shape[1] + 2), np.uint8)
+            for b, like in enumerate(self.like_edges):
+                near[b, 1:-1, 1:-1] = cv2.dilate(like, ball)
+            self._near_like[tolerance_px] = near.view(bool)  # 0/1 bytes, dilated from 0/1
+        return self._near_like[tolerance_px]
 
     def nearest_edges(self, points_px: np.ndarray, bins: np.ndarray, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
         """For points (N, 2) on model edges of direction ``bins`` (N,): the nearest edge

@@ -1,0 +1,389 @@
+"""The template search: a hypothesis generator that never normalises an image region.
+
+Where the tetrad generator (``hypotheses``) normalises a whole region of image segments,
+so that an occluder or a neighbour in the region moves its centre and scale, this one
+slides explicit templates over the image, as LINE-2D (Hinterstoisser et al., PAMI 2012)
+and the shape-based matching of Ulrich, Wiedemann and Steger do: a template is a view of
+the aspect graph turned by an in-plane angle and scaled to a pixel size, drawn as
+``SearchParams.template_points`` points with the direction of the model edge they lie on;
+it scores at an image position by the share of its points that find an image edge pixel
+of like direction (modulo 180 degrees: a metal edge flips polarity with the light) near
+them. Occlusion only removes points from that share, clutter adds edges only where it
+lies, so the share stays selective among clutter while tolerating a hidden part.
+
+Steps, per image:
+
+1. Response maps (``ResponseMaps``): for each of ``EdgeEvidence.BINS`` direction bins the
+   Canny pixels of that bin or the two next to it, pooled onto a grid ``coarse_factor``
+   times coarser and spread by ``spread`` cells: a template point hits when its cell is set.
+2. Chance (a-contrario): a template that lands on dense edges hits by chance. The expected
+   hits of a template at a position are its points' count per bin times the density of
+   that bin's map in a window the size of the template; the score is the hits above that
+   chance as a share of the hits possible above it, ``(hits - E) / (K - E)``. It penalises
+   templates whose points share one direction (an edge-on view fits any straight edge: the
+   chance of its bin along a straight edge is high) and templates inside dense inner edges.
+3. Coarse search (``score_templates``, a numba kernel that releases the GIL): every coarse
+   view (``TemplateLibrary.coarse_views``, the graph views nearest a sparser golden
+   spiral) x in-plane angle x size, at every coarse cell; each template keeps its best
+   position. A chunk of templates is one call, so threads can share the templates.
+4. The best distinct templates become ``Hypothesis`` objects on the virtual camera through
+   their centre (``camera.virtual_alignment``): the refinement (``refinement``) turns them
+   into metric poses, pulls them onto the image lines, climbs over the fine graph views and
+   scores them like the tetrad generator's.
+
+The template points are derived from the graph's view edges when the estimator starts
+(under a second for 1,505 views), not stored in the graph file (docs/DECISIONS.md).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numba import njit
+
+from ..aspect_graph import AspectGraph
+from ..camera import virtual_alignment
+from ..params import SearchParams
+from ..viewsphere import fibonacci_directions
+from .frame import Frame
+from .hypotheses import Hypothesis
+from .refinement import nearest_neighbours
+from .regions import Region
+from .scoring import EdgeEvidence
+from .workers import SERIAL, WorkerPool
+
+BINS = EdgeEvidence.BINS
+#: the kernel's first pass counts every PROBE_STRIDE-th point of a template (a quarter)
+PROBE_STRIDE = 4
+#: a view whose template points run in one direction (within three bins, 67 degrees) for
+#: more than this share is seen nearly edge-on: it fits any pair of straight image edges,
+#: so the search does not start from it (the refinement's view climb still reaches it)
+MAX_ONE_DIRECTION_SHARE = 0.8
+#: the fine stage: a template point hits within 2 pixels of a like edge pixel (the score's
+#: pose.inlier_pixels), over at most 8 rounds of moves, each to the 8 nearest graph views
+FINE_SPREAD_PIXELS = 2.0
+FINE_ROUNDS = 8
+FINE_NEIGHBOURS = 8
+
+
+class TemplateLibrary:
+    """Per graph view, ``template_points`` points along its visible edges (metres, view
+    coordinates centred on the model centre) with the direction of their edge (radians,
+    modulo pi); and the coarse views the search starts from."""
+
+    def __init__(self, graph: AspectGraph, p: SearchParams):
+        self.graph = graph
+        self.n_points = p.template_points
+        self.points = np.zeros((graph.n_views, p.template_points, 2), np.float32)
+        self.angles = np.zeros((graph.n_views, p.template_points), np.float32)
+        for v in range(graph.n_views):
+            self.points[v], self.angles[v] = template_points(graph.view_xy(v), p.template_points)
+        directions = fibonacci_directions(p.coarse_view_step_deg)
+        coarse = np.unique(np.argmax(directions @ graph.view_directions.T, axis=1))
+        self.coarse_views = coarse[[one_direction_share(self.angles[v]) <= MAX_ONE_DIRECTION_SHARE for v in coarse]]
+        #: the radius (metres) of each view's template about the model centre: sizes are
+        #: the part's diameter in pixels, so a view seen edge-on is as far as the others
+        self.diameter = graph.model_diameter
+
+
+def template_points(segments: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points evenly spaced by length along segments (N, 2, 2) and the direction
+    of the segment each lies on (modulo pi). A view without segments gives points at 0."""
+    delta = segments[:, 1] - segments[:, 0]
+    lengths = np.hypot(delta[:, 0], delta[:, 1])
+    total = lengths.sum()
+    if len(segments) == 0 or total <= 0:
+        return np.zeros((count, 2)), np.zeros(count)
+    # every probe-th point first: the search's first pass counts a spread-out subset
+    along = (np.argsort(np.arange(count) % PROBE_STRIDE, kind="stable") + 0.5) / count * total
+    ends = np.cumsum(lengths)
+    which = np.minimum(np.searchsorted(ends, along), len(segments) - 1)
+    frac = (along - (ends[which] - lengths[which])) / np.maximum(lengths[which], 1e-12)
+    points = segments[which, 0] + frac[:, None] * delta[which]
+    return points, np.mod(np.arctan2(delta[which, 1], delta[which, 0]), np.pi)
+
+
+def one_direction_share(angles: np.ndarray) -> float:
+    """The largest share of directions (modulo pi) within three neighbouring bins."""
+    counts = np.bincount((np.mod(angles, np.pi) / np.pi * BINS).astype(int) % BINS, minlength=BINS)
+    return float(max(counts[b] + counts[(b + 1) % BINS] + counts[b - 1] for b in range(BINS)) / max(len(angles), 1))
+
+
+@dataclass
+class ResponseMaps:
+    """One image's coarse response maps (step 1 of the module doc) and their chance."""
+
+    maps: np.ndarray  # (BINS, H + 2 pad, W + 2 pad) uint8 0/1, padded with 0
+    pad: int
+    factor: int
+    shape: tuple[int, int]  # coarse (H, W)
+
+    @classmethod
+    def of(cls, evidence: EdgeEvidence, factor: int, spread: int, pad: int) -> "ResponseMaps":
+        h, w = evidence.shape
+        hc, wc = -(-h // factor), -(-w // factor)
+        pooled = np.zeros((BINS, hc * factor, wc * factor), np.uint8)
+        pooled[:, :h, :w] = evidence.like_edges
+        pooled = pooled.reshape(BINS, hc, factor, wc, factor).max(axis=(2, 4))
+        kernel = np.ones((2 * spread + 1, 2 * spread + 1), np.uint8)
+        maps = np.zeros((BINS, hc + 2 * pad, wc + 2 * pad), np.uint8)
+        for b in range(BINS):
+            maps[b, pad:pad + hc, pad:pad + wc] = cv2.dilate(pooled[b], kernel)
+        return cls(maps, pad, factor, (hc, wc))
+
+    def chance(self, window: int) -> np.ndarray:
+        """(BINS, H, W) float32: each bin's share of set cells in a ``window``-wide square
+        about each cell (outside the image counts as unset, as in the search)."""
+        hc, wc = self.shape
+        out = np.empty((BINS, hc, wc), np.float32)
+        for b in range(BINS):
+            box = cv2.boxFilter(self.maps[b].astype(np.float32), -1, (window, window), normalize=True,
+                                borderType=cv2.BORDER_CONSTANT)
+            out[b] = box[self.pad:self.pad + hc, self.pad:self.pad + wc]
+        return out
+
+
+@njit(nogil=True, cache=True)
+def score_templates(maps, pad, dx, dy, bins, size_index, chance, probes, min_share, best_score, best_y, best_x):
+    """Coarse search kernel over templates ``t`` (rows of dx, dy, bins: (T, K) offsets in
+    coarse cells and direction bins of each template's points; ``size_index`` (T,) picks the
+    chance maps (S, BINS, H, W) of its size). Writes each template's best score, the share
+    of its points that hit minus the share expected by chance (module doc), and where.
+
+    Two passes: the first ``probes`` points (spread along the template) are counted at
+    every cell; only cells where at least ``min_share`` of them hit are counted in full."""
+    n_templates, k = dx.shape
+    h, w = chance.shape[2], chance.shape[3]
+    acc = np.zeros((h, w), np.int16)
+    counts = np.zeros(maps.shape[0], np.float32)
+    need = max(1, int(np.ceil(min_share * probes)))
+    for t in range(n_templates):
+        acc[:, :] = 0
+        counts[:] = 0
+        for j in range(k):
+            counts[bins[t, j]] += 1
+        for j in range(probes):
+            b = bins[t, j]
+            oy = pad + dy[t, j]
+            ox = pad + dx[t, j]
+            for y in range(h):
+                row = maps[b, oy + y, ox:ox + w]
+                line = acc[y]
+                for x in range(w):
+                    line[x] += row[x]
+        s = size_index[t]
+        best, by, bx = -1.0, -1, -1
+        for y in range(h):
+            for x in range(w):
+                if acc[y, x] < need:
+                    continue
+                hits = acc[y, x]
+                for j in range(probes, k):
+                    hits += maps[bins[t, j], pad + dy[t, j] + y, pad + dx[t, j] + x]
+                expected = 0.0
+                for b in range(maps.shape[0]):
+                    if counts[b] > 0:
+                        expected += counts[b] * chance[s, b, y, x]
+                score = (hits - expected) / k
+                if score > best:
+                    best, by, bx = score, y, x
+        best_score[t], best_y[t], best_x[t] = best, by, bx
+
+
+class TemplateSearch:
+    """The search of the module doc for one aspect graph."""
+
+    def __init__(self, graph: AspectGraph, p: SearchParams):
+        self.graph = graph
+        self.library = TemplateLibrary(graph, p)
+        self.neighbours = nearest_neighbours(graph.view_directions, FINE_NEIGHBOURS)
+        self.warm()
+
+    @staticmethod
+    def library_changes(old: SearchParams, new: SearchParams) -> bool:
+        """Whether the templates must be derived again for the new parameters."""
+        return (old.template_points, old.coarse_view_step_deg) != (new.template_points, new.coarse_view_step_deg)
+
+    def warm(self) -> None:
+        """Compile (or load from numba's cache) the kernel now, not on the first image."""
+        maps = np.zeros((BINS, 3, 3), np.uint8)
+        one = np.zeros((1, 1), np.int16)
+        score_templates(maps, 1, one, one, one.astype(np.uint8), np.zeros(1, np.int64),
+                        np.zeros((1, BINS, 1, 1), np.float32), 1, 0.5, np.zeros(1), np.zeros(1, np.int64),
+                        np.zeros(1, np.int64))
+
+    @staticmethod
+    def sizes(frame: Frame, p: SearchParams) -> np.ndarray:
+        """The part diameters in pixels the search tries (geometric steps)."""
+        diagonal = np.hypot(frame.camera.width, frame.camera.height)
+        low, high = p.min_size_fraction * diagonal, p.max_size_fraction * diagonal
+        count = max(1, int(np.ceil(np.log(high / low) / np.log(p.size_step))) + 1)
+        return low * p.size_step ** np.arange(count)
+
+    def templates(self, views: np.ndarray, angles: np.ndarray, sizes: np.ndarray, factor: int):
+        """Offsets (T, K) in coarse cells and direction bins of every (view, angle, size),
+        in that nesting order."""
+        lib = self.library
+        c, s = np.cos(angles), np.sin(angles)
+        pts = lib.points[views]  # (V, K, 2)
+        rx = pts[:, None, :, 0] * c[None, :, None] - pts[:, None, :, 1] * s[None, :, None]  # (V, A, K)
+        ry = pts[:, None, :, 0] * s[None, :, None] + pts[:, None, :, 1] * c[None, :, None]
+        scale = sizes / lib.diameter / factor  # coarse cells per metre
+        dx = np.rint(rx[:, :, None] * scale[None, None, :, None]).astype(np.int16)  # (V, A, S, K)
+        dy = np.rint(ry[:, :, None] * scale[None, None, :, None]).astype(np.int16)
+        direction = np.mod(lib.angles[views][:, None, :] + angles[None, :, None], np.pi)
+        bins = (direction / np.pi * BINS).astype(np.uint8) % BINS  # (V, A, K)
+        bins = np.broadcast_to(bins[:, :, None], dx.shape)
+        k = lib.n_points
+        return dx.reshape(-1, k), dy.reshape(-1, k), np.ascontiguousarray(bins).reshape(-1, k)
+
+    def coarse(self, frame: Frame, p: SearchParams, pool: WorkerPool = SERIAL) -> "CoarseResult":
+        """Every coarse template's best score and position in the image (module doc, step 3);
+        the templates are split into one chunk per worker thread (the kernel releases the GIL)."""
+        lib = self.library
+        factor = p.coarse_factor
+        sizes = self.sizes(frame, p)
+        pad = int(np.ceil(sizes[-1] / factor / 2)) + p.spread + 1
+        maps = ResponseMaps.of(frame.evidence, factor, p.spread, pad)
+        chance = np.stack([maps.chance(max(3, int(round(d / factor)) | 1)) for d in sizes])
+        views = lib.coarse_views
+        angles = np.arange(p.angles) * (2 * np.pi / p.angles)
+        dx, dy, bins = self.templates(views, angles, sizes, factor)
+        n = len(dx)
+        result = CoarseResult(score=np.full(n, -1.0), y=np.zeros(n, np.int64), x=np.zeros(n, np.int64),
+                              view=np.repeat(views, len(angles) * len(sizes)),
+                              angle=np.tile(np.repeat(angles, len(sizes)), len(views)),
+                              size=np.tile(sizes, len(views) * len(angles)),
+                              size_index=np.tile(np.arange(len(sizes)), len(views) * len(angles)), factor=factor)
+        def run(chunk: slice) -> None:
+            score_templates(maps.maps, pad, dx[chunk], dy[chunk], bins[chunk], result.size_index[chunk], chance,
+                            lib.n_points // PROBE_STRIDE, p.min_coarse_share, result.score[chunk], result.y[chunk],
+                            result.x[chunk])
+
+        pool.map(run, pool.split(n))
+        return result
+
+    def hypotheses(self, frame: Frame, p: SearchParams, pool: WorkerPool = SERIAL) -> list[Hypothesis]:
+        """The best distinct templates of the image as hypotheses (module doc)."""
+        c = self.coarse(frame, p, pool)
+        order = np.argsort(-c.score)
+        order = order[c.score[order] > 0]
+        center_x, center_y = c.center_px()
+        kept: list[int] = []
+        for t in order:
+            if len(kept) == p.hypotheses:
+                break
+            near = [u for u in kept if np.hypot(center_x[u] - center_x[t], center_y[u] - center_y[t])
+                    < p.distinct_fraction * c.size[t]]
+            if len(near) < p.per_position:
+                kept.append(t)
+        kept = np.array(kept, dtype=np.int64)
+        state = FineState(view=c.view[kept].copy(), angle=c.angle[kept].copy(), size=c.size[kept].copy(),
+                          x=center_x[kept].copy(), y=center_y[kept].copy(), score=np.zeros(len(kept)))
+        state = self.fine(frame, state, angle_step=np.pi / p.angles, size_step=(p.size_step - 1) / 2,
+                          shift_step=float(c.factor))
+        out = []
+        for j in range(len(kept)):
+            center_n = frame.camera.undistort(np.array([[state.x[j], state.y[j]]]))[0]
+            scale = state.size[j] / self.library.diameter / frame.camera.focal  # 1 / depth
+            out.append(Hypothesis(_seed_region(virtual_alignment(center_n)), int(state.view[j]), float(scale),
+                                  float(state.angle[j]), np.zeros(2), float(state.score[j])))
+        return out
+
+    def fine(self, frame: Frame, state: "FineState", *, angle_step: float, size_step: float,
+             shift_step: float) -> "FineState":
+        """Each candidate climbed on the full-resolution response (share of points within
+        ``FINE_SPREAD_PIXELS`` of a like edge pixel) over the neighbouring graph views, the
+        in-plane angle, the size and the position, the steps halving when no move gains."""
+        maps = frame.evidence.near_like(FINE_SPREAD_PIXELS)
+        state.score = self.fine_scores(maps, state.view, state.angle, state.size, state.x, state.y)
+        steps = np.array([angle_step, size_step, shift_step])
+        for _ in range(FINE_ROUNDS):
+            moves = self._moves(state, steps)
+            scores = self.fine_scores(maps, *moves[1:])
+            owner = moves[0]
+            best = np.full(len(state.view), -1.0)
+            which = np.full(len(state.view), -1)
+            for m in np.argsort(scores):  # ascending: the last write per owner is its best
+                best[owner[m]], which[owner[m]] = scores[m], m
+            gain = best > state.score + 1e-9
+            for j in np.nonzero(gain)[0]:
+                m = which[j]
+                state.view[j], state.angle[j], state.size[j] = moves[1][m], moves[2][m], moves[3][m]
+                state.x[j], state.y[j], state.score[j] = moves[4][m], moves[5][m], best[j]
+            if not gain.any():
+                steps = steps / 2
+        return state
+
+    def _moves(self, state: "FineState", steps: np.ndarray):
+        """Every candidate's single moves: to each neighbouring view, the angle, size and
+        position one step either way. Returns (owner, view, angle, size, x, y) arrays."""
+        angle_step, size_step, shift_step = steps
+        n = len(state.view)
+        rows = []
+        for j in range(n):
+            v, a, s, x, y = state.view[j], state.angle[j], state.size[j], state.x[j], state.y[j]
+            for u in self.neighbours[v]:
+                rows.append((j, u, a, s, x, y))
+            for da in (-angle_step, angle_step):
+                rows.append((j, v, a + da, s, x, y))
+            for ds in (-size_step, size_step):
+                rows.append((j, v, a, s * (1 + ds), x, y))
+            for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (1, 1), (-1, 1), (1, -1)):
+                rows.append((j, v, a, s, x + dx * shift_step, y + dy * shift_step))
+        cols = list(zip(*rows))
+        return (np.array(cols[0]), np.array(cols[1]), np.array(cols[2]), np.array(cols[3]), np.array(cols[4]),
+                np.array(cols[5]))
+
+    def fine_scores(self, maps: np.ndarray, view, angle, size, x, y) -> np.ndarray:
+        """Share of each template's points that hit the full-resolution maps (BINS, H + 2, W + 2)."""
+        lib = self.library
+        pts = lib.points[view]  # (N, K, 2)
+        c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+        scale = (size / lib.diameter)[:, None]
+        px = np.rint(x[:, None] + scale * (c * pts[..., 0] - s * pts[..., 1])).astype(np.int64) + 1
+        py = np.rint(y[:, None] + scale * (s * pts[..., 0] + c * pts[..., 1])).astype(np.int64) + 1
+        h, w = maps.shape[1:]
+        px, py = np.clip(px, 0, w - 1), np.clip(py, 0, h - 1)  # the maps' border is empty
+        bins = (np.mod(lib.angles[view] + angle[:, None], np.pi) / np.pi * BINS).astype(np.int64) % BINS
+        return maps[bins, py, px].mean(axis=1)
+
+
+@dataclass
+class FineState:
+    """Candidates of the fine stage: view, angle (radians), diameter and centre (pixels)."""
+
+    view: np.ndarray
+    angle: np.ndarray
+    size: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    score: np.ndarray
+
+
+@dataclass
+class CoarseResult:
+    """Per coarse template: its view, in-plane angle (radians), part diameter (pixels), and
+    its best score and cell."""
+
+    score: np.ndarray
+    y: np.ndarray
+    x: np.ndarray
+    view: np.ndarray
+    angle: np.ndarray
+    size: np.ndarray
+    size_index: np.ndarray
+    factor: int
+
+    def center_px(self) -> tuple[np.ndarray, np.ndarray]:
+        """The templates' best positions in pixels (the centres of their cells)."""
+        half = (self.factor - 1) / 2.0
+        return self.x * self.factor + half, self.y * self.factor + half
+
+
+def _seed_region(R_align: np.ndarray) -> Region:
+    """The virtual camera of a template's centre, as the region the refinement needs."""
+    return Region(R_align=R_align, center=np.zeros(2), scale=1.0, features=None, orientation_histogram=None,
+                  distance_maps=None)
+
