@@ -165,10 +165,9 @@ class SearchParams(Ranged):
     size_step: float = doc("ratio between successive part diameters searched", 1.25, 1.01, 2.0)
     min_coarse_share: float = doc(
         "a position is scored only if this share of a template's points hit an edge", 0.4, 0.0, 1.0)
-    hypotheses: int = doc("best distinct templates handed to the refinement", 32, 1, 256)
-    per_position: int = doc("at most this many templates kept about one position", 6, 1, 64)
+    hypotheses: int = doc("best distinct templates handed to the refinement", 48, 1, 256)
     distinct_fraction: float = doc(
-        "templates closer than this share of their size are about one position", 0.2, 0.0, 1.0)
+        "templates of one view and about one angle closer than this share of their size are one", 0.2, 0.0, 1.0)
 
     def __post_init__(self):
         if self.generators not in GENERATORS:

@@ -8,7 +8,8 @@ Each stage lives in its own module; this one only wires them:
    virtual camera and normalised like the views
 3. ``hypotheses``: per region, the chamfer pre-filter's (view, rotation) shortlist
    (``prefilter``), then Kuhn-Munkres, similarity and 2D ICP (``matching``): hypotheses
-   ranked by two-way edge coverage
+   ranked by two-way edge coverage; and/or (``search.generators``) ``search``: templates of
+   the views slid over the image's gradient directions, no region normalised
 4. ``refinement``: a first metric pose per hypothesis, refined on the image lines and
    scored on the edge pixels (``scoring``); the best climbed over neighbouring views and
    polished on the edge pixels
@@ -20,8 +21,8 @@ pose by the similarity alone (``refinement.pose_from_similarity``), not refined 
 verified; the paper has no "not found", so any hypothesis is reported. It is the
 baseline of bench/paper_figures.py and of the learning (brepose-learn).
 
-The whole image is matched and verified first, the clusters only when it holds no pose
-scoring ``scoring.CLEAR_SCORE``.
+The template search runs first when chosen; then the whole image is matched and verified,
+the clusters only when no pose so far scores ``scoring.CLEAR_SCORE``.
 """
 from __future__ import annotations
 

@@ -48,7 +48,6 @@ from ..params import SearchParams
 from ..viewsphere import fibonacci_directions
 from .frame import Frame
 from .hypotheses import Hypothesis
-from .refinement import nearest_neighbours
 from .regions import Region
 from .scoring import EdgeEvidence
 from .workers import SERIAL, WorkerPool
@@ -60,11 +59,6 @@ PROBE_STRIDE = 4
 #: more than this share is seen nearly edge-on: it fits any pair of straight image edges,
 #: so the search does not start from it (the refinement's view climb still reaches it)
 MAX_ONE_DIRECTION_SHARE = 0.8
-#: the fine stage: a template point hits within 2 pixels of a like edge pixel (the score's
-#: pose.inlier_pixels), over at most 8 rounds of moves, each to the 8 nearest graph views
-FINE_SPREAD_PIXELS = 2.0
-FINE_ROUNDS = 8
-FINE_NEIGHBOURS = 8
 
 
 class TemplateLibrary:
@@ -197,7 +191,6 @@ class TemplateSearch:
     def __init__(self, graph: AspectGraph, p: SearchParams):
         self.graph = graph
         self.library = TemplateLibrary(graph, p)
-        self.neighbours = nearest_neighbours(graph.view_directions, FINE_NEIGHBOURS)
         self.warm()
 
     @staticmethod
@@ -270,96 +263,25 @@ class TemplateSearch:
         order = np.argsort(-c.score)
         order = order[c.score[order] > 0]
         center_x, center_y = c.center_px()
+        # a template is a duplicate of a better one of the same view, about one angle step
+        # turned, about one position; other views at one position are kept: several views
+        # fit a part's position, and the best by the coarse score is often not the right one
+        step = 2 * np.pi / p.angles
         kept: list[int] = []
         for t in order:
             if len(kept) == p.hypotheses:
                 break
-            near = [u for u in kept if np.hypot(center_x[u] - center_x[t], center_y[u] - center_y[t])
-                    < p.distinct_fraction * c.size[t]]
-            if len(near) < p.per_position:
+            if not any(c.view[u] == c.view[t] and abs(np.angle(np.exp(1j * (c.angle[u] - c.angle[t])))) <= step
+                       and np.hypot(center_x[u] - center_x[t], center_y[u] - center_y[t])
+                       < p.distinct_fraction * c.size[t] for u in kept):
                 kept.append(t)
-        kept = np.array(kept, dtype=np.int64)
-        state = FineState(view=c.view[kept].copy(), angle=c.angle[kept].copy(), size=c.size[kept].copy(),
-                          x=center_x[kept].copy(), y=center_y[kept].copy(), score=np.zeros(len(kept)))
-        state = self.fine(frame, state, angle_step=np.pi / p.angles, size_step=(p.size_step - 1) / 2,
-                          shift_step=float(c.factor))
         out = []
-        for j in range(len(kept)):
-            center_n = frame.camera.undistort(np.array([[state.x[j], state.y[j]]]))[0]
-            scale = state.size[j] / self.library.diameter / frame.camera.focal  # 1 / depth
-            out.append(Hypothesis(_seed_region(virtual_alignment(center_n)), int(state.view[j]), float(scale),
-                                  float(state.angle[j]), np.zeros(2), float(state.score[j])))
+        for t in kept:
+            center_n = frame.camera.undistort(np.array([[center_x[t], center_y[t]]]))[0]
+            scale = c.size[t] / self.library.diameter / frame.camera.focal  # 1 / depth
+            out.append(Hypothesis(_seed_region(virtual_alignment(center_n)), int(c.view[t]), float(scale),
+                                  float(c.angle[t]), np.zeros(2), float(c.score[t])))
         return out
-
-    def fine(self, frame: Frame, state: "FineState", *, angle_step: float, size_step: float,
-             shift_step: float) -> "FineState":
-        """Each candidate climbed on the full-resolution response (share of points within
-        ``FINE_SPREAD_PIXELS`` of a like edge pixel) over the neighbouring graph views, the
-        in-plane angle, the size and the position, the steps halving when no move gains."""
-        maps = frame.evidence.near_like(FINE_SPREAD_PIXELS)
-        state.score = self.fine_scores(maps, state.view, state.angle, state.size, state.x, state.y)
-        steps = np.array([angle_step, size_step, shift_step])
-        for _ in range(FINE_ROUNDS):
-            moves = self._moves(state, steps)
-            scores = self.fine_scores(maps, *moves[1:])
-            owner = moves[0]
-            best = np.full(len(state.view), -1.0)
-            which = np.full(len(state.view), -1)
-            for m in np.argsort(scores):  # ascending: the last write per owner is its best
-                best[owner[m]], which[owner[m]] = scores[m], m
-            gain = best > state.score + 1e-9
-            for j in np.nonzero(gain)[0]:
-                m = which[j]
-                state.view[j], state.angle[j], state.size[j] = moves[1][m], moves[2][m], moves[3][m]
-                state.x[j], state.y[j], state.score[j] = moves[4][m], moves[5][m], best[j]
-            if not gain.any():
-                steps = steps / 2
-        return state
-
-    def _moves(self, state: "FineState", steps: np.ndarray):
-        """Every candidate's single moves: to each neighbouring view, the angle, size and
-        position one step either way. Returns (owner, view, angle, size, x, y) arrays."""
-        angle_step, size_step, shift_step = steps
-        n = len(state.view)
-        rows = []
-        for j in range(n):
-            v, a, s, x, y = state.view[j], state.angle[j], state.size[j], state.x[j], state.y[j]
-            for u in self.neighbours[v]:
-                rows.append((j, u, a, s, x, y))
-            for da in (-angle_step, angle_step):
-                rows.append((j, v, a + da, s, x, y))
-            for ds in (-size_step, size_step):
-                rows.append((j, v, a, s * (1 + ds), x, y))
-            for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (1, 1), (-1, 1), (1, -1)):
-                rows.append((j, v, a, s, x + dx * shift_step, y + dy * shift_step))
-        cols = list(zip(*rows))
-        return (np.array(cols[0]), np.array(cols[1]), np.array(cols[2]), np.array(cols[3]), np.array(cols[4]),
-                np.array(cols[5]))
-
-    def fine_scores(self, maps: np.ndarray, view, angle, size, x, y) -> np.ndarray:
-        """Share of each template's points that hit the full-resolution maps (BINS, H + 2, W + 2)."""
-        lib = self.library
-        pts = lib.points[view]  # (N, K, 2)
-        c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
-        scale = (size / lib.diameter)[:, None]
-        px = np.rint(x[:, None] + scale * (c * pts[..., 0] - s * pts[..., 1])).astype(np.int64) + 1
-        py = np.rint(y[:, None] + scale * (s * pts[..., 0] + c * pts[..., 1])).astype(np.int64) + 1
-        h, w = maps.shape[1:]
-        px, py = np.clip(px, 0, w - 1), np.clip(py, 0, h - 1)  # the maps' border is empty
-        bins = (np.mod(lib.angles[view] + angle[:, None], np.pi) / np.pi * BINS).astype(np.int64) % BINS
-        return maps[bins, py, px].mean(axis=1)
-
-
-@dataclass
-class FineState:
-    """Candidates of the fine stage: view, angle (radians), diameter and centre (pixels)."""
-
-    view: np.ndarray
-    angle: np.ndarray
-    size: np.ndarray
-    x: np.ndarray
-    y: np.ndarray
-    score: np.ndarray
 
 
 @dataclass
