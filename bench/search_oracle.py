@@ -2,7 +2,7 @@
 rank among all coarse templates (``online/search.py``) of the best template near the true
 pose (view within 20 degrees, size within 20 %, position within 10 % of the part's
 diameter), its score against the best score, and whether a hypothesis handed to the
-refinement (after the fine stage) is still near the truth.
+refinement is near the truth.
 
     python bench/search_oracle.py GRAPH.brepose.npz SCENE_DIR [--first 12] [search.param=value ...]
 """
@@ -78,7 +78,7 @@ def main(argv=None) -> int:
     found = ranks >= 0
     print(f"\nnear-truth template among the best 32 / 100 / 1000: {np.mean(found & (ranks < 32)):.2f} / "
           f"{np.mean(found & (ranks < 100)):.2f} / {np.mean(found & (ranks < 1000)):.2f}; "
-          f"a hypothesis near the truth after the fine stage: {np.mean(kept_near):.2f}")
+          f"a hypothesis handed to the refinement near the truth: {np.mean(kept_near):.2f}")
     return 0
 
 
