@@ -34,7 +34,7 @@ import numpy as np
 
 from ..aspect_graph import AspectGraph
 from ..camera import Camera
-from ..params import EstimatorParams
+from ..params import EstimatorParams, SearchParams
 from .frame import Frame
 from .hypotheses import TetradHypotheses, best_per_region
 from . import kernels
@@ -95,7 +95,7 @@ class Estimator:
         #: pools replaced by a parameter change, closed once no image uses them
         self._retired: list[WorkerPool] = []
         self._lock = threading.Lock()
-        self._search = TemplateSearch(graph, self._params.search)
+        self._search = template_search(graph, self._params.search)
 
     @property
     def params(self) -> EstimatorParams:
@@ -108,8 +108,8 @@ class Estimator:
         with self._lock:
             if value.matching.max_model_segments != self._params.matching.max_model_segments:
                 self._hypotheses = TetradHypotheses(self.graph, value.matching)
-            if TemplateSearch.library_changes(self._params.search, value.search):
-                self._search = TemplateSearch(self.graph, value.search)
+            if self._search is None or TemplateSearch.library_changes(self._params.search, value.search):
+                self._search = template_search(self.graph, value.search)
             if resolve_workers(value.matching.workers) != self._pool.size:
                 self._retired.append(self._pool)
                 self._pool = WorkerPool(value.matching.workers)
@@ -202,6 +202,12 @@ class Estimator:
                         view_index=g.nearest_view(R, t), n_image_segments=not_found.n_image_segments,
                         n_matched=pairs.n_matched, n_nearest=pairs.n_nearest, image_segments=pairs.image_segments,
                         model_segments=pairs.model_segments, timings=timings, matched_view=best.view)
+
+
+def template_search(graph: AspectGraph, p: SearchParams) -> TemplateSearch | None:
+    """The template search if the parameters use it, else None: the default (tetrad) node
+    then starts without deriving templates and warming the search's kernel."""
+    return None if p.generators == "tetrad" else TemplateSearch(graph, p)
 
 
 def _lap(timings: dict, name: str, start: float) -> float:
