@@ -1,7 +1,7 @@
 """brepose-learn: tune the estimator's thresholds on the training shapes (seed paper, section 6).
 
 Renders training scenes of the built-in cube, box and cylinder (clean, and 25 % occluded
-among 3 clutter shapes), compiles their aspect graphs, searches the parameters of
+among 3 clutter shapes under random lights), compiles their aspect graphs, searches the parameters of
 ``evaluation.learning.SEARCH_SPACE`` with optuna (the defaults first) and writes the best
 as a parameter file with its provenance. Needs the [compile] and [learn] extras.
 """
