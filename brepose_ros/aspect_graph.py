@@ -22,6 +22,14 @@ view), plus a JSON metadata entry with the format version, the sha256 of
 the source STEP, the compile parameters, the units and the array shapes, and a sha256 over
 the metadata and the array bytes so that any change after writing is detected. A file of
 another format version is refused with a message to recompile it.
+
+Symmetries (``offline.symmetry``): the rotations that map the part's edges onto its edges
+within a tolerance, found at compile time. A discrete one maps a model point X to
+``symmetry_rotations[k] @ X + symmetry_translations[k]``; a continuous one turns the part
+by any angle about ``symmetry_axes[c]`` (a point on the axis and its unit direction).
+``symmetry_shares`` / ``symmetry_axis_shares`` hold the share of the edges each maps onto
+edges: at least ``EXACT_SYMMETRY_SHARE`` is an exact symmetry (the poses are equivalent),
+less a near one (twins the image must tell apart: ``online.symmetry``).
 """
 from __future__ import annotations
 
@@ -31,7 +39,7 @@ import os
 import tempfile
 import zipfile
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +49,8 @@ from . import __version__
 FORMAT = "brepose-aspect-graph"
 #: 2: view coordinates as seg_xy / xy_origin / xy_scale; no tetrads (the matcher computes
 #: its own features), no view_ups (view_rotations holds them)
-FORMAT_VERSION = 2
+#: 3: the part's symmetries (symmetry_*)
+FORMAT_VERSION = 3
 SUFFIX = ".brepose.npz"
 
 #: name -> (dtype, shape with V = views, S = segments): the file's whole contract.
@@ -55,7 +64,17 @@ _ARRAYS = {
     "xy_scale": (np.float64, ("V",)),
     "seg_3d": (np.float64, ("S", "2", "3")),
     "seg_kind": (np.uint8, ("S",)),
+    "symmetry_rotations": (np.float64, ("Y", "3", "3")),
+    "symmetry_translations": (np.float64, ("Y", "3")),
+    "symmetry_shares": (np.float64, ("Y",)),
+    "symmetry_axes": (np.float64, ("C", "2", "3")),
+    "symmetry_axis_shares": (np.float64, ("C",)),
 }
+
+#: a symmetry mapping at least this share of the edges onto edges is exact: what is left
+#: unmatched is the sampling of curves, not a feature (the sampled edges of a cube, box or
+#: cylinder match to 0.995 and more; a 5 mm hole in a 60 mm part's edges leaves about 0.97)
+EXACT_SYMMETRY_SHARE = 0.985
 
 
 #: size limits checked before anything is inflated: a 1,505-view graph is 1-3 MB on disk and
@@ -91,6 +110,12 @@ class AspectGraph:
     xy_scale: np.ndarray
     seg_3d: np.ndarray
     seg_kind: np.ndarray
+    # none by default: a graph made in code for a test need not name them
+    symmetry_rotations: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    symmetry_translations: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    symmetry_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    symmetry_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
+    symmetry_axis_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def n_views(self) -> int:
@@ -117,6 +142,24 @@ class AspectGraph:
     def visible_segments(self, R: np.ndarray, t: np.ndarray) -> slice:
         """Rows of the segments visible from the view nearest to the pose."""
         return self.view_slice(self.nearest_view(R, t))
+
+    @property
+    def exact_symmetries(self) -> np.ndarray:
+        """(Y,) which discrete symmetries are exact (the rest are near ones)."""
+        return self.symmetry_shares >= EXACT_SYMMETRY_SHARE
+
+    @property
+    def exact_axes(self) -> np.ndarray:
+        """(C,) which continuous symmetries are exact."""
+        return self.symmetry_axis_shares >= EXACT_SYMMETRY_SHARE
+
+    def symmetric_poses(self, R: np.ndarray, t: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The twins (K, 3, 3), (K, 3) of pose R, t under the discrete symmetries ``which``
+        (indices or a mask): the poses that show the part turned back by each symmetry.
+        With X -> S X + b, pose R, t shows the model where R S^T, t - R S^T b shows it turned."""
+        S, b = self.symmetry_rotations[which], self.symmetry_translations[which]
+        R_twin = R @ S.transpose(0, 2, 1)
+        return R_twin, t - np.einsum("kij,kj->ki", R_twin, b)
 
     def view_xy(self, i: int) -> np.ndarray:
         """The orthographic view coordinates (n, 2, 2) of view ``i``'s sections, in metres."""
@@ -303,7 +346,8 @@ def _check_arrays(path: Path, metadata: dict, arrays: dict[str, np.ndarray]) -> 
     directions, offsets = arrays["view_directions"], arrays["seg_offsets"]
     n_views = directions.shape[0] if directions.ndim else -1
     n_segments = int(offsets[-1]) if offsets.ndim == 1 and len(offsets) else -1
-    sizes = {"V": n_views, "V+1": n_views + 1, "S": n_segments}
+    sizes = {"V": n_views, "V+1": n_views + 1, "S": n_segments, "Y": len(arrays["symmetry_shares"]),
+             "C": len(arrays["symmetry_axis_shares"])}
     for name, (dtype, shape) in _ARRAYS.items():
         a = arrays[name]
         expected = tuple(sizes[s] if s in sizes else int(s) for s in shape)
@@ -315,3 +359,20 @@ def _check_arrays(path: Path, metadata: dict, arrays: dict[str, np.ndarray]) -> 
             raise AspectGraphError(f"{path}: array {name} does not match the shape/dtype its metadata lists")
     if offsets[0] != 0 or np.any(np.diff(offsets) < 0):
         raise AspectGraphError(f"{path}: seg_offsets is not a non-decreasing list starting at 0")
+    _check_symmetries(path, arrays)
+
+
+def _check_symmetries(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Symmetries are proper rotations and unit axes with shares in [0, 1]: anything else
+    would turn twins and evaluation poses into non-rigid maps."""
+    rotations = arrays["symmetry_rotations"]
+    identity = np.einsum("kji,kjl->kil", rotations, rotations) - np.eye(3)
+    if len(rotations) and (np.abs(identity).max() > 1e-6 or np.abs(np.linalg.det(rotations) - 1.0).max() > 1e-6):
+        raise AspectGraphError(f"{path}: symmetry_rotations holds a matrix that is not a rotation "
+                               f"(orthonormal, determinant 1)")
+    directions = arrays["symmetry_axes"][:, 1]
+    if len(directions) and np.abs(np.linalg.norm(directions, axis=1) - 1.0).max() > 1e-6:
+        raise AspectGraphError(f"{path}: symmetry_axes holds a direction that is not a unit vector")
+    for name in ("symmetry_shares", "symmetry_axis_shares"):
+        if np.any((arrays[name] < 0) | (arrays[name] > 1)):
+            raise AspectGraphError(f"{path}: {name} holds a share outside [0, 1]")

@@ -140,6 +140,12 @@ class PoseParams(Ranged):
         "outscoring the whole part", 40.0, 0.0, 1000.0)
     min_score: float = doc("a pose with a lower score is reported as not found", 0.6, 0.0, 1.0)
     warn_error_ratio: float = doc("diagnostics turn WARN above this error ratio", 0.5, 0.0, 1.0)
+    twin_check: bool = doc(
+        "compare the final pose with its twins under the part's near symmetries (stored in the aspect graph) on "
+        "the edges that tell them apart, and keep the one the image confirms", True)
+    twin_margin: float = doc(
+        "a pose whose evidence over its best twin (difference of the shares of their distinguishing edges the "
+        "image confirms) is below this is reported ambiguous", 0.2, 0.0, 1.0)
 
 
 GENERATORS = ("tetrad", "search", "both")

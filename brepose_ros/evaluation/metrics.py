@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from ..geometry import direction_to, rotation_angle_deg
+from ..aspect_graph import AspectGraph
+from ..geometry import direction_to, quaternion_from_matrix, rotation_angle_deg
 from ..viewsphere import nearest_views
 
 
@@ -73,17 +74,51 @@ class PoseErrors:
     add: float
     add_s: float
     success: bool  # rotation < 5 deg and translation < 5 % of the diameter
+    #: the errors against the truth turned by the part's exact symmetries, the nearest of those
+    #: equivalent poses (``symmetric_truth``); the plain ones for a part without symmetry
+    rotation_sym_deg: float
+    translation_sym_mm: float
+    success_sym: bool
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
 
 
-def pose_errors(R_est, t_est, R_gt, t_gt, model: ModelPoints) -> PoseErrors:
+def pose_errors(R_est, t_est, R_gt, t_gt, model: ModelPoints, graph: AspectGraph | None = None) -> PoseErrors:
+    """CONVENTIONS.md's errors, and with the part's ``graph`` the symmetry-aware ones."""
     rot = rotation_angle_deg(R_est, R_gt)
     trans = translation_error_mm(t_est, t_gt)
+    R_sym, t_sym = symmetric_truth(R_est, R_gt, t_gt, graph) if graph is not None else (R_gt, t_gt)
+    rot_sym, trans_sym = rotation_angle_deg(R_est, R_sym), translation_error_mm(t_est, t_sym)
+    bound_mm = 0.05 * model.diameter * 1000.0
     return PoseErrors(rot, trans, pose_error_rate(R_est, R_gt),
                       model.add(R_est, t_est, R_gt, t_gt), model.add_s(R_est, t_est, R_gt, t_gt),
-                      bool(rot < 5.0 and trans < 0.05 * model.diameter * 1000.0))
+                      bool(rot < 5.0 and trans < bound_mm), rot_sym, trans_sym,
+                      bool(rot_sym < 5.0 and trans_sym < bound_mm))
+
+
+def symmetric_truth(R_est, R_gt, t_gt, graph: AspectGraph) -> tuple[np.ndarray, np.ndarray]:
+    """Of the poses equivalent to the truth under the part's exact symmetries (the graph's:
+    discrete ones and turns about continuous axes), the one nearest ``R_est`` in rotation."""
+    R_est = np.asarray(R_est, dtype=float)
+    R, t = graph.symmetric_poses(np.asarray(R_gt, dtype=float), np.asarray(t_gt, dtype=float),
+                                 graph.exact_symmetries)
+    R, t = np.concatenate([[R_gt], R]), np.concatenate([[t_gt], t])
+    for point, axis in graph.symmetry_axes[graph.exact_axes][:1]:
+        # the turn about the axis that brings each pose nearest R_est: the twist about the
+        # axis of the rotation between them (swing-twist decomposition of its quaternion)
+        for k in range(len(R)):
+            x, y, z, w = quaternion_from_matrix(R[k].T @ R_est)
+            turn = _rotation_about(axis, 2.0 * np.arctan2(np.array([x, y, z]) @ axis, w))
+            t[k] = t[k] + R[k] @ (point - turn @ point)
+            R[k] = R[k] @ turn
+    best = int(np.argmin([rotation_angle_deg(R_est, R_k) for R_k in R]))
+    return R[best], t[best]
+
+
+def _rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 
 def summarise(errors: list[PoseErrors | None]) -> dict:
@@ -101,6 +136,7 @@ def summarise(errors: list[PoseErrors | None]) -> dict:
         "images": n,
         "found": len(found) / n if n else 0.0,
         "success": rate(lambda e: e.success),
+        "success_sym": rate(lambda e: e.success_sym),
         "er_below_0.01": rate(lambda e: e.error_rate < 0.01),
         "add_s_below_0.1": rate(lambda e: e.add_s < 0.1),
         "add_below_0.1": rate(lambda e: e.add < 0.1),
@@ -131,11 +167,16 @@ def write_predictions(path: str | Path, predictions: list[dict]) -> None:
 
 
 def prediction_entry(image: str, estimate) -> dict:
+    """One entry of the predictions JSON; for a part with near symmetries also the pose's
+    ``symmetry_margin`` over its twins and whether the image left it ``ambiguous``."""
     found = estimate.found
-    return {"image": image,
-            "R": np.asarray(estimate.R).ravel().tolist() if found else None,
-            "t": np.asarray(estimate.t).ravel().tolist() if found else None,
-            "score": float(estimate.score), "error_ratio": float(estimate.error_ratio)}
+    entry = {"image": image,
+             "R": np.asarray(estimate.R).ravel().tolist() if found else None,
+             "t": np.asarray(estimate.t).ravel().tolist() if found else None,
+             "score": float(estimate.score), "error_ratio": float(estimate.error_ratio)}
+    if estimate.symmetry_margin is not None:
+        entry.update(symmetry_margin=float(estimate.symmetry_margin), ambiguous=bool(estimate.ambiguous))
+    return entry
 
 
 @dataclass
@@ -159,7 +200,7 @@ def evaluate_scene(scene, estimator, model: ModelPoints, on_image=None, paper_on
         if image is None:
             raise ValueError(f"cannot read image {entry.path}")
         estimate = estimator.estimate(image, scene.camera, paper_only=paper_only)
-        errors = pose_errors(estimate.R, estimate.t, entry.R, entry.t, model) if estimate.found else None
+        errors = pose_errors(estimate.R, estimate.t, entry.R, entry.t, model, graph) if estimate.found else None
         direction = direction_to(graph.model_center, entry.R, entry.t)
         order = list(nearest_views(graph.view_directions, direction, k=min(graph.n_views, 50)))
 

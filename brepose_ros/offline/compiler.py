@@ -16,11 +16,12 @@ from ..aspect_graph import AspectGraph, AspectGraphError
 from ..geometry import look_at_rotation
 from ..metric_space import normalisation_of
 from ..viewsphere import fibonacci_directions, lonlat_directions, view_ups
-from .cad import load_step
+from .cad import load_step, tessellate
 from .hidden_lines import (DEFAULT_CHORD_TOLERANCE, DEFAULT_METHOD, DEFAULT_MIN_LENGTH, KIND_NAMES,
                            HiddenLineRemover, view_coordinates)
-from .mesh import is_mesh_file, load_mesh
+from .mesh import MeshPart, is_mesh_file, load_mesh
 from .mesh_lines import DEFAULT_CREASE_ANGLE_DEG, MeshLineRemover
+from .symmetry import NEAR_SHARE, TOLERANCE, detect_symmetries
 
 #: Golden-spiral spacing of the views: about 1,500 views, no direction more than 4 degrees
 #: from its nearest view.
@@ -126,12 +127,14 @@ def compile_aspect_graph(step_path: str | Path, step_deg: float = DEFAULT_STEP_D
     params = dict(units="m", projection="orthographic", up="geometry.default_up",
                   sampling="lonlat" if lonlat is not None else "fibonacci",
                   step_deg=None if lonlat is not None else float(step_deg), lonlat=lonlat,
-                  kinds=list(KIND_NAMES), step_file=Path(step_path).name, **source, **options)
+                  kinds=list(KIND_NAMES), step_file=Path(step_path).name,
+                  symmetry=dict(tolerance=TOLERANCE, near_share=NEAR_SHARE), **source, **options)
     return _assemble(part, params, directions, rotations, views)
 
 
 def _assemble(part, params, directions, rotations, views) -> AspectGraph:
-    """Every view's sections in its view coordinates, laid out flat."""
+    """Every view's sections in its view coordinates, laid out flat, and the part's
+    symmetries found on them."""
     seg_xy, xy_origin, xy_scale = [], [], []
     for i, ((seg_3d, _), rotation) in enumerate(zip(views, rotations)):
         xy = view_coordinates(seg_3d, rotation, part.center)
@@ -143,6 +146,10 @@ def _assemble(part, params, directions, rotations, views) -> AspectGraph:
         xy_origin.append(frame.center)
         xy_scale.append(frame.scale)
     counts = [len(s) for s in seg_xy]
+    seg_3d = np.concatenate([s for s, _ in views]).astype(np.float64)
+    seg_kind = np.concatenate([k for _, k in views]).astype(np.uint8)
+    mesh = part if isinstance(part, MeshPart) else tessellate(part)
+    symmetries = detect_symmetries(seg_3d, seg_kind, float(part.diameter), (mesh.vertices, mesh.triangles))
     return AspectGraph(
         step_sha256=part.sha256, params=params, model_center=np.asarray(part.center, dtype=np.float64),
         model_diameter=float(part.diameter), n_faces=int(part.n_faces),
@@ -151,5 +158,6 @@ def _assemble(part, params, directions, rotations, views) -> AspectGraph:
         seg_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
         seg_xy=np.concatenate(seg_xy), xy_origin=np.array(xy_origin, dtype=np.float64),
         xy_scale=np.array(xy_scale, dtype=np.float64),
-        seg_3d=np.concatenate([s for s, _ in views]).astype(np.float64),
-        seg_kind=np.concatenate([k for _, k in views]).astype(np.uint8))
+        seg_3d=seg_3d, seg_kind=seg_kind, symmetry_rotations=symmetries.rotations,
+        symmetry_translations=symmetries.translations, symmetry_shares=symmetries.shares,
+        symmetry_axes=symmetries.axes, symmetry_axis_shares=symmetries.axis_shares)

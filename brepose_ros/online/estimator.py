@@ -13,7 +13,9 @@ Each stage lives in its own module; this one only wires them:
 4. ``refinement``: a first metric pose per hypothesis, refined on the image lines and
    scored on the edge pixels (``scoring``); the best climbed over neighbouring views and
    polished on the edge pixels
-5. ``scoring``: found if the score passes ``pose.min_score``; the error ratio at the pose
+5. ``symmetry``: the pose against its twins under the part's near symmetries, on the
+   edges that tell them apart; ambiguous when the image cannot decide
+6. ``scoring``: found if the score passes ``pose.min_score``; the error ratio at the pose
 
 ``estimate(..., paper_only=True)`` stops after step 3, as the seed paper does (section 6):
 the bipartite matching's best-covered hypothesis over all regions, its view turned into a
@@ -43,6 +45,7 @@ from .refinement import PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups
 from .scoring import CLEAR_SCORE, edge_pairs
 from .search import TemplateSearch
+from .symmetry import check_twins
 from .workers import WorkerPool, resolve_workers
 
 
@@ -77,6 +80,11 @@ class Estimate:
     #: (metres, radians): the polish's last Gauss-Newton normal matrix scaled by its residual
     #: variance (``refinement.refine_poses``); None when not found or the polish took no step
     covariance: np.ndarray | None = None
+    #: evidence of the pose over its twins under the part's near symmetries, 0 to 1
+    #: (``symmetry.check_twins``); None when the part has none or the check is off
+    symmetry_margin: float | None = None
+    #: the margin is below ``pose.twin_margin``: the image cannot tell the pose from a twin
+    ambiguous: bool = False
 
 
 class Estimator:
@@ -173,6 +181,10 @@ class Estimator:
             return not_found
         best = self._refiner.best(candidates, frame, p.pose, pool)
         clock = _lap(timings, "refinement", clock)
+        margin = None
+        if p.pose.twin_check:
+            best, margin = check_twins(best, self.graph, self._refiner, frame, p.pose)
+            clock = _lap(timings, "symmetry", clock)
         timings["total"] = sum(timings.values())
         found = best.score >= p.pose.min_score
         pairs = edge_pairs(self.graph, best.R, best.t, frame, p)
@@ -180,7 +192,8 @@ class Estimator:
                         error_ratio=pairs.error_ratio, view_index=self.graph.nearest_view(best.R, best.t),
                         n_image_segments=len(edges.segments), n_matched=pairs.n_matched, n_nearest=pairs.n_nearest,
                         image_segments=pairs.image_segments, model_segments=pairs.model_segments, timings=timings,
-                        matched_view=int(best.hypothesis.view), covariance=best.covariance if found else None)
+                        matched_view=int(best.hypothesis.view), covariance=best.covariance if found else None,
+                        symmetry_margin=margin, ambiguous=margin is not None and margin < p.pose.twin_margin)
 
     def _paper_estimate(self, groups: list, frame: Frame, p: EstimatorParams, hypotheses: TetradHypotheses, pool,
                         not_found: Estimate, clock: float) -> Estimate:

@@ -15,9 +15,11 @@ Topics (node name ``estimator``; relative names can be remapped with ``--ros-arg
 - out ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): one array per image, header copied
   from the image, one status named ``estimator: <part>`` per part. Levels: OK = found with
   error ratio <= ``pose.warn_error_ratio``; WARN = not found (score below
-  ``pose.min_score``) or error ratio above it; ERROR = the image or the intrinsics could not
+  ``pose.min_score``), error ratio above it, or a pose the image cannot tell from its
+  symmetric twin (``Estimate.ambiguous``); ERROR = the image or the intrinsics could not
   be used, or the estimator raised (also logged). Values: found, score, error_ratio,
-  view_index, image_edges, matched_pairs, nearest_pairs, estimator_ms, latency_ms (receipt
+  view_index, image_edges, matched_pairs, nearest_pairs, symmetry_margin (-1 for a part
+  without near symmetry), estimator_ms, latency_ms (receipt
   to answer), frames_skipped (frames received but replaced by a newer one before the worker
   got to them), frames_lost (samples the DDS reader reported lost), input_hz, and the
   estimator's own stage timings as ``<stage>_ms``. Besides, a status ``estimator: input``
@@ -274,6 +276,10 @@ def diagnose(estimate: Estimate, params: EstimatorParams) -> tuple[bytes, str]:
     if estimate.error_ratio > params.pose.warn_error_ratio:
         return DiagnosticStatus.WARN, (f"found, but error ratio {estimate.error_ratio:.2f} > "
                                        f"pose.warn_error_ratio {params.pose.warn_error_ratio:g}")
+    if estimate.ambiguous:
+        return DiagnosticStatus.WARN, (f"found, but the image cannot tell the pose from its symmetric twin "
+                                       f"(margin {estimate.symmetry_margin:.2f} < pose.twin_margin "
+                                       f"{params.pose.twin_margin:g})")
     return DiagnosticStatus.OK, f"found (score {estimate.score:.2f}, error ratio {estimate.error_ratio:.2f})"
 
 
@@ -281,7 +287,9 @@ def estimate_values(estimate: Estimate) -> dict[str, Any]:
     values = {"found": estimate.found, "score": float(estimate.score),
               "error_ratio": float(estimate.error_ratio), "view_index": estimate.view_index,
               "image_edges": estimate.n_image_segments, "matched_pairs": estimate.n_matched,
-              "nearest_pairs": estimate.n_nearest}
+              "nearest_pairs": estimate.n_nearest,
+              # evidence over the symmetric twins; -1: the part has no near symmetry
+              "symmetry_margin": -1.0 if estimate.symmetry_margin is None else float(estimate.symmetry_margin)}
     values.update({f"{stage}_ms": 1000.0 * float(s) for stage, s in estimate.timings.items()})
     return values
 

@@ -1,0 +1,84 @@
+"""The twin check: the final pose against its twins under the part's near symmetries.
+
+A near-symmetric part (``offline.symmetry``) looks almost the same in a pose and in its twin,
+the pose turned by the symmetry: the score of both is high, and the estimator may settle on
+either. Here each twin of the final pose (``AspectGraph.symmetric_poses``) is refined on
+the image like the pose was, and the two are compared on the only edges that tell them
+apart: the projected model edges of each that lie farther than ``DISTINCT_REACH`` inlier
+distances from every projected edge of the other (a hole on one side, a chamfer, a tab).
+The share of those edges that the image confirms (``EdgeEvidence.supports``) is each pose's
+evidence; the common edges would only drown the small distinguishing feature.
+
+The pose with more evidence is kept, and the difference of the two shares is its *margin*
+(0 to 1): near 0 the image cannot decide (the feature is hidden, too small at this
+distance, or absent from both), and the estimate says so (``Estimate.ambiguous``). Exact
+symmetries need no check: their twins are the same pose of the part.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..aspect_graph import AspectGraph
+from ..params import PoseParams
+from .frame import Frame
+from .lines2d import point_segment_distance, samples_along
+from .refinement import CLIMB_ROUNDS, SETTLE_ROUNDS, Candidate, PoseRefiner
+
+#: an edge of one pose distinguishes it from its twin when farther than this many inlier
+#: distances from every edge of the twin: the refined twin sits on the common edges within
+#: a few pixels, and a feature nearer than this would be confused with them
+DISTINCT_REACH = 3.0
+#: pieces the projected edges are cut into to find the distinguishing ones, pixels
+PIECE_PIXELS = 2.0
+#: fewer distinguishing pixels than this in both poses: the image cannot show the difference
+MIN_DISTINCT_PIXELS = 15.0
+
+
+def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame: Frame,
+                p: PoseParams) -> tuple[Candidate, float | None]:
+    """The pose (``best`` or one of its twins) with the most evidence on the edges that tell
+    them apart, and its margin over the strongest other (module doc); margin None when the
+    part has no near symmetry."""
+    near = np.nonzero(~graph.exact_symmetries)[0]
+    if len(near) == 0:
+        return best, None
+    R, t = graph.symmetric_poses(best.R, best.t, near)
+    R, t = refiner.refine(R, t, frame, p, CLIMB_ROUNDS + SETTLE_ROUNDS)
+    twins = [refiner.polish(Candidate(0.0, R_k, t_k, best.hypothesis), frame, p) for R_k, t_k in zip(R, t)]
+    # gains[k]: how much more of its distinguishing edges twin k shows than the pose does
+    gains = np.array([twin_evidence(graph, best, twin, frame, p) for twin in twins])
+    k = int(np.argmax(gains))
+    if gains[k] > 0 and twins[k].score >= p.min_score:
+        return twins[k], float(gains[k])
+    return best, float(max(-gains.max(), 0.0))
+
+
+def twin_evidence(graph: AspectGraph, pose: Candidate, twin: Candidate, frame: Frame, p: PoseParams) -> float:
+    """The twin's share of its distinguishing edges that the image confirms minus the
+    pose's share of its own (module doc); 0 when neither shows enough distinguishing edge."""
+    drawn = [frame.camera.project_model(graph.seg_3d[graph.visible_segments(c.R, c.t)], c.R, c.t)
+             for c in (pose, twin)]
+    reach = DISTINCT_REACH * p.inlier_pixels
+    pieces = [distinct_pieces(drawn[0], drawn[1], reach), distinct_pieces(drawn[1], drawn[0], reach)]
+    lengths = [len(piece) * PIECE_PIXELS for piece in pieces]
+    if max(lengths) < MIN_DISTINCT_PIXELS:
+        return 0.0
+    shares = [frame.evidence.supports(piece, np.array([0, len(piece)]), p.inlier_pixels)[0] if len(piece) else 0.0
+              for piece in pieces]
+    return float(shares[1] - shares[0])
+
+
+def distinct_pieces(segments: np.ndarray, others: np.ndarray, reach: float) -> np.ndarray:
+    """Pieces (N, 2, 2) about ``PIECE_PIXELS`` long of the segments (pixels) that lie farther
+    than ``reach`` from every one of ``others``."""
+    if len(segments) == 0:
+        return np.zeros((0, 2, 2))
+    delta = segments[:, 1] - segments[:, 0]
+    counts = np.maximum(np.ceil(np.hypot(delta[:, 0], delta[:, 1]) / PIECE_PIXELS).astype(int), 1)
+    segment, frac = samples_along(counts)
+    half = (delta / (2.0 * counts[:, None]))[segment]
+    centers = segments[segment, 0] + frac[:, None] * delta[segment]
+    if len(others):
+        far = point_segment_distance(centers[:, None], others[None]).min(axis=1) > reach
+        centers, half = centers[far], half[far]
+    return np.stack([centers - half, centers + half], axis=1)
