@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import zipfile
 
+import cv2
 import numpy as np
 import pytest
 
@@ -193,3 +194,34 @@ def test_a_turn_about_a_continuous_axis_off_the_origin_costs_nothing():
     assert errors.rotation_sym_deg < 1e-6 and errors.translation_sym_mm < 1e-6
     tilted = R_est @ rotation_about(np.array([1.0, 0.0, 0.0]), np.radians(4))
     assert pose_errors(tilted, t_est, R, t, model, graph).rotation_sym_deg == pytest.approx(4, abs=1e-6)
+
+
+# ----------------------------------------------------------------------------- run time
+
+@pytest.mark.slow
+def test_the_twin_check_turns_flipped_poses_of_the_notched_plate_back(builtin_step, tmp_path):
+    """Rendered plates: the estimator's pose set to each twin of the truth flips back, with a
+    clear margin; the truth stays."""
+    from brepose_ros.offline.compiler import compile_aspect_graph
+    from brepose_ros.online.frame import Frame
+    from brepose_ros.online.image_edges import detect_edges
+    from brepose_ros.online.refinement import Candidate, PoseRefiner
+    from brepose_ros.online.symmetry import check_twins
+    from brepose_ros.params import EstimatorParams
+    from brepose_ros.scene_folder import load_scene
+    from brepose_ros.synthetic.scenes import generate_scene
+
+    step = builtin_step("notched_plate")
+    graph = compile_aspect_graph(step, step_deg=15.0, workers=2, progress=False)
+    near = np.nonzero(~graph.exact_symmetries)[0]
+    assert len(near) >= 1 and graph.exact_symmetries.sum() == 0  # the notch breaks all three half turns
+    generate_scene(step, tmp_path / "scene", 2, seed=5)
+    scene, p = load_scene(tmp_path / "scene"), EstimatorParams()
+    refiner = PoseRefiner(graph)
+    for entry in scene.entries:
+        frame = Frame.of(detect_edges(cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED), p.edges), scene.camera)
+        kept, margin = check_twins(Candidate(0.0, entry.R, entry.t, None), graph, refiner, frame, p.pose)
+        assert rotation_angle_deg(kept.R, entry.R) < 3.0 and margin >= p.pose.twin_margin
+        for R, t in zip(*graph.symmetric_poses(entry.R, entry.t, near)):
+            chosen, margin = check_twins(Candidate(0.0, R, t, None), graph, refiner, frame, p.pose)
+            assert rotation_angle_deg(chosen.R, entry.R) < 3.0 and margin >= p.pose.twin_margin

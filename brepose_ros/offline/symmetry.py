@@ -51,6 +51,10 @@ DIRECTION_TOLERANCE_DEG = 25.0
 NEAR_SHARE = 0.6
 #: discrete rotations tried about every axis: k/n turns for the orders of common parts
 ORDERS = (2, 3, 4, 5, 6)
+#: ... and the other sampling at least this share: a plate's surface maps onto itself under a
+#: half turn about any axis in its mid-plane (its faces onto each other's planes) while its
+#: edges do not (0.03-0.09 of the notched plate's; the Motor1 holder's twin maps 0.24)
+MIN_SHARE = 0.15
 #: turns that no finite order below 7 shares: a rotation by all three maps a continuous symmetry
 GENERIC_TURNS = (0.1234, 0.3771, 0.6180)
 #: a grid cell of edge samples is kept when the views' sections reach it at least this share
@@ -62,8 +66,10 @@ MIN_EDGE_SAMPLES = 20
 #: tangent plane of a like sample (the samples of a 100 mm part lie about 1 mm apart)
 SURFACE_SAMPLES = 6000
 SURFACE_REACH = 3.0
-#: at most this many edge samples score a candidate (the spacing grows for larger clouds)
+#: at most this many edge samples score a candidate (the spacing grows for larger clouds), and
+#: at most this many are drawn from the sections before the grid and the support filter
 MAX_SAMPLES = 6000
+MAX_RAW_SAMPLES = 2_000_000
 #: the loose screen before ICP: this many samples, matched within SCREEN_FACTOR tolerances
 SCREEN_SAMPLES = 250
 SCREEN_FACTOR = 3.0
@@ -78,7 +84,7 @@ MAX_DOMINANT = 8
 SAME_ROTATION_DEG = 3.0
 #: near symmetries closer than this are one twin (the ICP of a near symmetry settles a few
 #: degrees apart from different candidate axes; the run-time refinement closes the rest)
-SAME_NEAR_DEG = 15.0
+SAME_NEAR_DEG = 25.0
 #: near symmetries kept at most, the best shares first: each costs a twin check per image
 MAX_NEAR = 4
 #: a candidate this near a symmetry found already is not aligned again (candidate axes from
@@ -204,7 +210,8 @@ def edge_cloud(seg_3d: np.ndarray, diameter: float) -> tuple[np.ndarray, np.ndar
     delta = segments[:, 1] - segments[:, 0]
     lengths = np.linalg.norm(delta, axis=1)
     segments, delta, lengths, views = (a[lengths > 0] for a in (segments, delta, lengths, views))
-    spacing = max(SAMPLE_SPACING * diameter, lengths.sum() / (4 * MAX_SAMPLES))
+    # the sections hold many stray ones, so the raw samples are capped, not the kept ones
+    spacing = max(SAMPLE_SPACING * diameter, lengths.sum() / MAX_RAW_SAMPLES)
     for _ in range(8):  # the grid keeps about 1 sample per cell and direction: widen until few enough
         counts = np.maximum(np.ceil(lengths / spacing).astype(int), 1)
         segment = np.repeat(np.arange(len(counts)), counts)
@@ -276,9 +283,10 @@ class PartSamples:
         return any(c.share(S, b, subset=c.screen, factor=SCREEN_FACTOR) >= NEAR_SHARE for c in self.clouds)
 
     def share(self, S: np.ndarray, b: np.ndarray) -> float | None:
-        """The smaller share of the clouds, or None when no cloud reaches ``NEAR_SHARE``."""
+        """The smaller share of the clouds, or None when no cloud reaches ``NEAR_SHARE`` or
+        one stays below ``MIN_SHARE``."""
         shares = [c.share(S, b) for c in self.clouds]
-        return min(shares) if max(shares) >= NEAR_SHARE else None
+        return min(shares) if max(shares) >= NEAR_SHARE and min(shares) >= MIN_SHARE else None
 
     def align(self, S: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """ICP: the rigid map near X -> S X + b that best maps the samples onto their like

@@ -2,8 +2,8 @@
 
 A near-symmetric part (``offline.symmetry``) looks almost the same in a pose and in its twin,
 the pose turned by the symmetry: the score of both is high, and the estimator may settle on
-either. Here each twin of the final pose (``AspectGraph.symmetric_poses``) is refined on
-the image like the pose was, and the two are compared on the only edges that tell them
+either. Here each twin of the final pose (``AspectGraph.symmetric_poses``) is refined,
+climbed and polished on the image like the pose was, and the two are compared on the only edges that tell them
 apart: the projected model edges of each that lie farther than ``DISTINCT_REACH`` inlier
 distances from every projected edge of the other (a hole on one side, a chamfer, a tab).
 The share of those edges that the image confirms (``EdgeEvidence.supports``) is each pose's
@@ -19,10 +19,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..aspect_graph import AspectGraph
+from ..geometry import rotation_angle_deg
 from ..params import PoseParams
 from .frame import Frame
 from .lines2d import point_segment_distance, samples_along
-from .refinement import CLIMB_ROUNDS, SETTLE_ROUNDS, Candidate, PoseRefiner
+from .refinement import CLIMB_ROUNDS, SAME_POSE_DEG, SAME_POSE_DIAMETERS, Candidate, PoseRefiner
+from .scoring import pose_scores
 
 #: an edge of one pose distinguishes it from its twin when farther than this many inlier
 #: distances from every edge of the twin: the refined twin sits on the common edges within
@@ -37,20 +39,34 @@ MIN_DISTINCT_PIXELS = 15.0
 def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame: Frame,
                 p: PoseParams) -> tuple[Candidate, float | None]:
     """The pose (``best`` or one of its twins) with the most evidence on the edges that tell
-    them apart, and its margin over the strongest other (module doc); margin None when the
-    part has no near symmetry."""
+    them apart, and its margin over the strongest rival (module doc); margin None when the
+    part has no near symmetry, 1 when no twin holds on the image (each refines back onto
+    the pose or scores below ``pose.min_score``)."""
     near = np.nonzero(~graph.exact_symmetries)[0]
     if len(near) == 0:
         return best, None
     R, t = graph.symmetric_poses(best.R, best.t, near)
-    R, t = refiner.refine(R, t, frame, p, CLIMB_ROUNDS + SETTLE_ROUNDS)
-    twins = [refiner.polish(Candidate(0.0, R_k, t_k, best.hypothesis), frame, p) for R_k, t_k in zip(R, t)]
-    # gains[k]: how much more of its distinguishing edges twin k shows than the pose does
-    gains = np.array([twin_evidence(graph, best, twin, frame, p) for twin in twins])
+    R, t = refiner.refine(R, t, frame, p, CLIMB_ROUNDS)
+    # climbed over neighbouring views like the pose was: a near symmetry's twin starts a
+    # few degrees off, and a twin left in a worse optimum would lose for that alone
+    twins = [refiner.polish(refiner.climb(Candidate(float(score), R_k, t_k, best.hypothesis), frame, p), frame, p)
+             for R_k, t_k, score in zip(R, t, pose_scores(graph, R, t, frame, p))]
+    # a twin is a rival when it could be reported itself and did not refine back onto the pose
+    rivals = [twin for twin in twins if twin.score >= p.min_score and not same_pose(twin, best, graph.model_diameter)]
+    if not rivals:
+        return best, 1.0  # no twin holds on this image
+    # gains[k]: how much more of its distinguishing edges rival k shows than the pose does
+    gains = np.array([twin_evidence(graph, best, rival, frame, p) for rival in rivals])
     k = int(np.argmax(gains))
-    if gains[k] > 0 and twins[k].score >= p.min_score:
-        return twins[k], float(gains[k])
-    return best, float(max(-gains.max(), 0.0))
+    if gains[k] > 0:
+        return rivals[k], float(gains[k])
+    return best, float(-gains[k])
+
+
+def same_pose(a: Candidate, b: Candidate, diameter: float) -> bool:
+    """Whether two poses are one (``refinement.SAME_POSE_DEG`` and ``SAME_POSE_DIAMETERS``)."""
+    return (rotation_angle_deg(a.R, b.R) < SAME_POSE_DEG
+            and float(np.linalg.norm(a.t - b.t)) < SAME_POSE_DIAMETERS * diameter)
 
 
 def twin_evidence(graph: AspectGraph, pose: Candidate, twin: Candidate, frame: Frame, p: PoseParams) -> float:
