@@ -10,8 +10,9 @@ The share of those edges that the image confirms (``EdgeEvidence.supports``) is 
 evidence; the common edges would only drown the small distinguishing feature.
 
 The pose with more evidence is kept, and the difference of the two shares is its *margin*
-(0 to 1): near 0 the image cannot decide (the feature is hidden, too small at this
-distance, or absent from both), and the estimate says so (``Estimate.ambiguous``). Exact
+(0 to 1): near 0 the image cannot decide (the feature is hidden, or absent from both), and
+the estimate says so (``Estimate.ambiguous``). A feature too small at this distance to
+leave distinguishing edges is judged by the difference of the whole scores, a small margin. Exact
 symmetries need no check: their twins are the same pose of the part.
 """
 from __future__ import annotations
@@ -27,13 +28,18 @@ from .refinement import CLIMB_ROUNDS, SAME_POSE_DEG, SAME_POSE_DIAMETERS, Candid
 from .scoring import pose_scores
 
 #: an edge of one pose distinguishes it from its twin when farther than this many inlier
-#: distances from every edge of the twin: the refined twin sits on the common edges within
-#: a few pixels, and a feature nearer than this would be confused with them
-DISTINCT_REACH = 3.0
+#: distances from every edge of the twin: the polished twin sits on the common edges within
+#: a pixel or two, and a feature nearer than this would be confused with them
+DISTINCT_REACH = 2.0
 #: pieces the projected edges are cut into to find the distinguishing ones, pixels
 PIECE_PIXELS = 2.0
-#: fewer distinguishing pixels than this in both poses: the image cannot show the difference
-MIN_DISTINCT_PIXELS = 15.0
+#: fewer distinguishing pixels than this in both poses are too few to count on their own
+#: (the notched plate's 8 x 6 mm notch at 2.5 px/mm leaves 0-20)
+MIN_DISTINCT_PIXELS = 10.0
+
+#: a rival replaces the pose only with more evidence than this: two poses that show nearly
+#: the same edges differ in score by pixel noise of a few thousandths
+MIN_GAIN = 0.005
 
 
 def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame: Frame,
@@ -58,9 +64,9 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     # gains[k]: how much more of its distinguishing edges rival k shows than the pose does
     gains = np.array([twin_evidence(graph, best, rival, frame, p) for rival in rivals])
     k = int(np.argmax(gains))
-    if gains[k] > 0:
+    if gains[k] > MIN_GAIN:
         return rivals[k], float(gains[k])
-    return best, float(-gains[k])
+    return best, float(max(-gains[k], 0.0))
 
 
 def same_pose(a: Candidate, b: Candidate, diameter: float) -> bool:
@@ -71,14 +77,15 @@ def same_pose(a: Candidate, b: Candidate, diameter: float) -> bool:
 
 def twin_evidence(graph: AspectGraph, pose: Candidate, twin: Candidate, frame: Frame, p: PoseParams) -> float:
     """The twin's share of its distinguishing edges that the image confirms minus the
-    pose's share of its own (module doc); 0 when neither shows enough distinguishing edge."""
+    pose's share of its own (module doc). When neither shows ``MIN_DISTINCT_PIXELS`` of
+    distinguishing edge (a small feature on a small image), the difference of their whole
+    scores, which the feature still moves a little."""
     drawn = [frame.camera.project_model(graph.seg_3d[graph.visible_segments(c.R, c.t)], c.R, c.t)
              for c in (pose, twin)]
     reach = DISTINCT_REACH * p.inlier_pixels
     pieces = [distinct_pieces(drawn[0], drawn[1], reach), distinct_pieces(drawn[1], drawn[0], reach)]
-    lengths = [len(piece) * PIECE_PIXELS for piece in pieces]
-    if max(lengths) < MIN_DISTINCT_PIXELS:
-        return 0.0
+    if max(len(piece) for piece in pieces) * PIECE_PIXELS < MIN_DISTINCT_PIXELS:
+        return twin.score - pose.score
     shares = [frame.evidence.supports(piece, np.array([0, len(piece)]), p.inlier_pixels)[0] if len(piece) else 0.0
               for piece in pieces]
     return float(shares[1] - shares[0])
