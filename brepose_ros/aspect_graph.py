@@ -72,8 +72,8 @@ _ARRAYS = {
 }
 
 #: a symmetry mapping at least this share of the edges onto edges is exact: what is left
-#: unmatched is the sampling of curves, not a feature (the sampled edges of a cube, box or
-#: cylinder match to 0.995 and more; a 5 mm hole in a 60 mm part's edges leaves about 0.97)
+#: unmatched is the sampling of curves, not a feature (a cube's, box's or cylinder's turns
+#: match 0.995-1.0; the half turns that move the notched plate's 8 x 6 mm notch 0.74-0.92)
 EXACT_SYMMETRY_SHARE = 0.985
 
 

@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from brepose_ros.aspect_graph import AspectGraph, AspectGraphError
+from brepose_ros.aspect_graph import EXACT_SYMMETRY_SHARE, AspectGraph, AspectGraphError
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors
-from brepose_ros.geometry import look_at_rotation, rotation_angle_deg
+from brepose_ros.geometry import look_at_rotation, rotation_about, rotation_angle_deg
 from brepose_ros.offline.hidden_lines import OUTLINE, SHARP
-from brepose_ros.offline.symmetry import detect_symmetries, rotation_about
+from brepose_ros.offline.symmetry import detect_symmetries
 
 # ----------------------------------------------------------------------------- parts as arrays
 
@@ -54,7 +54,7 @@ def detect(edges, surface, diameter=None):
 
 
 def exact(symmetries):
-    return symmetries.shares >= 0.985
+    return symmetries.shares >= EXACT_SYMMETRY_SHARE
 
 
 def angle_of(S):
@@ -82,7 +82,7 @@ def test_a_box_with_three_different_sides_has_three_half_turns():
 
 def test_a_cylinder_turns_continuously_about_its_axis():
     found = detect(*prism(circle(0.02), 0.05, smooth=True))
-    assert len(found.axis_shares) == 1 and found.axis_shares[0] >= 0.985
+    assert len(found.axis_shares) == 1 and found.axis_shares[0] >= EXACT_SYMMETRY_SHARE
     point, axis = found.axes[0]
     assert abs(axis[2]) > 0.999 and np.linalg.norm(point[:2]) < 1e-4
     # its half turns about the diameters are one symmetry up to the turn about the axis
@@ -99,7 +99,7 @@ def test_a_box_with_one_notch_is_near_symmetric_about_the_half_turn_that_moves_t
     edges, surface = prism(rectangle(0.06, 0.04), 0.025)
     notch, _ = prism(rectangle(0.008, 0.008) + [0.02, 0.0], 0.025)  # a square hole through one end
     found = detect(np.concatenate([edges, notch]), surface)
-    near = found.shares < 0.985
+    near = found.shares < EXACT_SYMMETRY_SHARE
     assert near.sum() >= 1 and (~near).sum() == 1  # the half turn about the long axis keeps the hole
     assert np.all(found.shares[near] >= 0.6)
     for S in found.rotations[near]:

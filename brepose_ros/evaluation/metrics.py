@@ -10,7 +10,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
 from ..aspect_graph import AspectGraph
-from ..geometry import direction_to, quaternion_from_matrix, rotation_angle_deg
+from ..geometry import direction_to, quaternion_from_matrix, rotation_about, rotation_angle_deg
 from ..viewsphere import nearest_views
 
 
@@ -109,16 +109,11 @@ def symmetric_truth(R_est, R_gt, t_gt, graph: AspectGraph) -> tuple[np.ndarray, 
         # axis of the rotation between them (swing-twist decomposition of its quaternion)
         for k in range(len(R)):
             x, y, z, w = quaternion_from_matrix(R[k].T @ R_est)
-            turn = _rotation_about(axis, 2.0 * np.arctan2(np.array([x, y, z]) @ axis, w))
+            turn = rotation_about(axis, 2.0 * np.arctan2(np.array([x, y, z]) @ axis, w))
             t[k] = t[k] + R[k] @ (point - turn @ point)
             R[k] = R[k] @ turn
     best = int(np.argmin([rotation_angle_deg(R_est, R_k) for R_k in R]))
     return R[best], t[best]
-
-
-def _rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
-    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 
 def summarise(errors: list[PoseErrors | None]) -> dict:

@@ -35,6 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..aspect_graph import EXACT_SYMMETRY_SHARE
+from ..geometry import rotation_about
 from .hidden_lines import OUTLINE
 
 #: a rotated edge sample matches when an edge sample of like direction lies this close, in
@@ -361,13 +362,6 @@ def dominant_directions(directions: np.ndarray) -> list[np.ndarray]:
         out.append(np.linalg.eigh(members.T @ members)[1][:, -1])
         left &= ~near[best]
     return out
-
-
-def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues: the rotation by ``angle`` about the unit ``axis``."""
-    x, y, z = axis
-    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 
 def _continuous_axis(samples: PartSamples, axis: np.ndarray, center: np.ndarray) -> tuple[float, np.ndarray] | None:

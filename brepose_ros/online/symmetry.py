@@ -45,7 +45,7 @@ MIN_GAIN = 0.005
 def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame: Frame,
                 p: PoseParams) -> tuple[Candidate, float | None]:
     """The pose (``best`` or one of its twins) with the most evidence on the edges that tell
-    them apart, and its margin over the strongest rival (module doc); margin None when the
+    them apart, and its margin over its strongest rival (module doc); margin None when the
     part has no near symmetry, 1 when no twin holds on the image (each refines back onto
     the pose or scores below ``pose.min_score``)."""
     near = np.nonzero(~graph.exact_symmetries)[0]
@@ -58,15 +58,26 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     twins = [refiner.polish(refiner.climb(Candidate(float(score), R_k, t_k, best.hypothesis), frame, p), frame, p)
              for R_k, t_k, score in zip(R, t, pose_scores(graph, R, t, frame, p))]
     # a twin is a rival when it could be reported itself and did not refine back onto the pose
-    rivals = [twin for twin in twins if twin.score >= p.min_score and not same_pose(twin, best, graph.model_diameter)]
+    # (or onto another rival)
+    rivals: list[Candidate] = []
+    for twin in twins:
+        if twin.score >= p.min_score and not any(same_pose(twin, c, graph.model_diameter) for c in [best] + rivals):
+            rivals.append(twin)
     if not rivals:
         return best, 1.0  # no twin holds on this image
-    # gains[k]: how much more of its distinguishing edges rival k shows than the pose does
-    gains = np.array([twin_evidence(graph, best, rival, frame, p) for rival in rivals])
-    k = int(np.argmax(gains))
-    if gains[k] > MIN_GAIN:
-        return rivals[k], float(gains[k])
-    return best, float(max(-gains[k], 0.0))
+    # with several near symmetries the rivals are twins of each other too: each pose's margin
+    # is its smallest gain over any other, and the pose with the largest margin wins
+    poses = [best] + rivals
+    gains = np.zeros((len(poses), len(poses)))  # gains[i, j]: how much more pose j shows than pose i
+    for i, j in zip(*np.triu_indices(len(poses), 1)):
+        gains[i, j] = twin_evidence(graph, poses[i], poses[j], frame, p)
+        gains[j, i] = -gains[i, j]
+    np.fill_diagonal(gains, np.inf)
+    margins = gains.min(axis=0)
+    winner = int(np.argmax(margins))
+    if margins[winner] <= margins[0] + MIN_GAIN:
+        winner = 0  # a rival must beat the pose by more than noise
+    return poses[winner], float(max(margins[winner], 0.0))
 
 
 def same_pose(a: Candidate, b: Candidate, diameter: float) -> bool:
