@@ -17,7 +17,8 @@ backgrounds, blur and noise, props of many shapes including other parts, the par
 data/bench/ (git-ignored); a scene of more images serves a smaller --n (image i depends on
 (seed, i) only). Results (with per-image errors) go to data/bench/results/accuracy_LABEL.json,
 rewritten after every row, for ``bench/plot_accuracy.py``; ``--report`` prints the tables of
-one or more such files (runs split by part, merged). Metrics follow ../shared/CONVENTIONS.md.
+one or more such files, pooling the images of a part and condition (runs split by part, or
+extended with ``--start``). Metrics follow ../shared/CONVENTIONS.md.
 """
 from __future__ import annotations
 
@@ -33,11 +34,13 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
-from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene, scene_summary  # noqa: E402
+from brepose_ros.evaluation.metrics import (  # noqa: E402
+    NOT_FOUND_ERROR_RATE, ModelPoints, evaluate_scene, scene_summary)
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
@@ -88,15 +91,19 @@ def step_file(source: str, cache: Path) -> Path | None:
     return path if path.exists() else None
 
 
-def scene(step: Path, folder: Path, n: int, seed: int, config: SceneConfig, distractors):
-    """The first ``n`` images of a cached scene, grown anew if it holds fewer."""
+def scene(step: Path, folder: Path, images: int | range, seed: int, config: SceneConfig, distractors):
+    """Images ``images`` (a range, or a count from the first) of a cached scene, grown anew
+    if it holds fewer."""
+    if isinstance(images, int):
+        images = range(images)
     if (folder / "gt.json").exists():
         cached = load_scene(folder)
-        if len(cached.entries) >= n:
-            return dataclasses.replace(cached, entries=cached.entries[:n])
+        if len(cached.entries) >= images.stop:
+            return dataclasses.replace(cached, entries=cached.entries[images.start:images.stop])
         shutil.rmtree(folder)
-    generate_scene(step, folder, n, seed=seed, config=config, distractors=distractors)
-    return load_scene(folder)
+    generate_scene(step, folder, images.stop, seed=seed, config=config, distractors=distractors)
+    grown = load_scene(folder)
+    return dataclasses.replace(grown, entries=grown.entries[images.start:])
 
 
 def distractor_meshes(cache: Path) -> list:
@@ -121,32 +128,48 @@ def git(*args) -> str:
         return "unknown"
 
 
+def rates(images: list[dict]) -> dict:
+    """Success, ADD-S < 0.1 d and er < 0.01 rates, median errors (of found poses) and median
+    time, from per-image records (so rows of split runs can be pooled)."""
+    n = max(len(images), 1)
+    found = [i for i in images if i["found"]]
+
+    def median(key):
+        return float(np.median([i[key] for i in found])) if found else float("nan")
+
+    return {"n": len(images), "success": sum(i.get("success", False) for i in found) / n,
+            "add_s": sum(i["add_s"] < 0.1 for i in found) / n,
+            "er": sum(i["error_rate"] < 0.01 for i in found) / n,
+            "rot": median("rotation_deg"), "trans": median("translation_mm"),
+            "mean_er": float(np.mean([i["error_rate"] if i["found"] else NOT_FOUND_ERROR_RATE for i in images]))
+            if images else float("nan"),
+            "ms": float(np.median([i["ms"] for i in images])) if images else float("nan")}
+
+
 def print_tables(rows: list[dict]) -> None:
-    print("\n| set | part | condition | success | ADD-S < 0.1 d | er < 0.01 | median rot (deg) | "
-          "median trans (mm) | mean er | median ms |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    """Per part and condition, then per set; rows of one part and condition are pooled."""
+    pooled: dict[tuple, list] = {}
     for row in rows:
-        s = row["summary"]
-        print(f"| {row['set']} | {row['part']} | {row['condition']} | {s['success']:.2f} | "
-              f"{s['add_s_below_0.1']:.2f} | {s['er_below_0.01']:.2f} | {s['median_rotation_deg']:.1f} | "
-              f"{s['median_translation_mm']:.1f} | {s.get('mean_error_rate', float('nan')):.3f} | "
-              f"{s['median_time_ms']:.0f} |")
-    sets = sorted({row["set"] for row in rows}, reverse=True)  # tune first
-    conditions = list(dict.fromkeys(row["condition"] for row in rows))
+        pooled.setdefault((row["set"], row["part"], row["condition"]), []).extend(row["images"])
+    print("\n| set | part | condition | images | success | ADD-S < 0.1 d | er < 0.01 | median rot (deg) | "
+          "median trans (mm) | mean er | median ms |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for (part_set_name, part, condition), images in pooled.items():
+        r = rates(images)
+        print(f"| {part_set_name} | {part} | {condition} | {r['n']} | {r['success']:.2f} | {r['add_s']:.2f} | "
+              f"{r['er']:.2f} | {r['rot']:.1f} | {r['trans']:.1f} | {r['mean_er']:.3f} | {r['ms']:.0f} |")
+    sets = sorted({key[0] for key in pooled}, reverse=True)  # tune first
+    conditions = list(dict.fromkeys(key[2] for key in pooled))
     print("\nPer set (pooled over its parts' images): success / ADD-S < 0.1 d / median ms\n")
-    print("| condition | " + " | ".join(f"{s} ({len({r['part'] for r in rows if r['set'] == s})} parts)"
+    print("| condition | " + " | ".join(f"{s} ({len({k[1] for k in pooled if k[0] == s})} parts)"
                                         for s in sets) + " |")
     print("|---|" + "---|" * len(sets))
     for condition in conditions:
         cells = []
         for name in sets:
-            chosen = [r for r in rows if r["set"] == name and r["condition"] == condition]
-            images = [i for r in chosen for i in r["images"]]
-            n = max(len(images), 1)
-            ms = sorted(i["ms"] for i in images)
-            cells.append(f"{sum(i.get('success', False) for i in images) / n:.2f} / "
-                         f"{sum(i.get('add_s', 1.0) < 0.1 for i in images) / n:.2f} / "
-                         f"{ms[len(ms) // 2] if ms else float('nan'):.0f}")
+            r = rates([i for key, images in pooled.items() if key[0] == name and key[2] == condition
+                       for i in images])
+            cells.append(f"{r['success']:.2f} / {r['add_s']:.2f} / {r['ms']:.0f}")
         print(f"| {condition} | " + " | ".join(cells) + " |")
 
 
@@ -163,6 +186,8 @@ def main(argv=None) -> int:
     parser.add_argument("--look", default="varied", choices=LOOKS, help="scene look (default varied)")
     parser.add_argument("--step-deg", type=float, default=5.0, help="aspect graph view spacing")
     parser.add_argument("--seed", type=int, default=100)
+    parser.add_argument("--start", type=int, default=0,
+                        help="first image index: --start 12 --n 12 adds images 12-23 to a run of --n 12")
     parser.add_argument("--out", type=Path, help="results JSON (default data/bench/results/accuracy_LABEL.json)")
     parser.add_argument("--report", type=Path, nargs="+", metavar="RESULTS",
                         help="print the tables of saved results files instead of running")
@@ -170,8 +195,8 @@ def main(argv=None) -> int:
     if args.report:
         print_tables([row for path in args.report for row in json.loads(path.read_text())["rows"]])
         return 0
-    if args.n < 1:
-        parser.error("--n must be at least 1")
+    if args.n < 1 or args.start < 0:
+        parser.error("--n must be at least 1 and --start not negative")
     params = EstimatorParams.load(args.params) if args.params else EstimatorParams()
     label = args.label or (args.params.stem if args.params else "default")
     cache = REPO / "data" / "bench"
@@ -187,7 +212,7 @@ def main(argv=None) -> int:
            "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
            "command": " ".join(["python", "bench/accuracy.py", *(argv if argv is not None else sys.argv[1:])]),
-           "paper_only": args.paper_only, "n": args.n, "look": args.look, "seed": args.seed, "step_deg": args.step_deg, "span": SPAN,
+           "paper_only": args.paper_only, "n": args.n, "start": args.start, "look": args.look, "seed": args.seed, "step_deg": args.step_deg, "span": SPAN,
            "tuning": list(TUNING), "params": params.to_dict(), "rows": []}
     rows = run["rows"]
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -202,7 +227,8 @@ def main(argv=None) -> int:
             progress.set_postfix_str(f"{name}: {condition}")
             config = SceneConfig(span=SPAN, look=args.look, **CONDITIONS[condition])
             folder = cache / f"scenes_v{SCENES_VERSION}_{args.look}" / f"{name}_{condition}_{args.seed}"
-            results = evaluate_scene(scene(step, folder, args.n, args.seed, config, distractors),
+            images = range(args.start, args.start + args.n)
+            results = evaluate_scene(scene(step, folder, images, args.seed, config, distractors),
                                      estimator, model, on_image=lambda *_: progress.update(),
                                      paper_only=args.paper_only)
             rows.append({"part": name, "set": part_set(name), "condition": condition,
