@@ -73,8 +73,10 @@ def main(argv=None) -> int:
             xs, ys, clean = curve(data["rows"], part_set, key)
             if not xs:
                 continue
-            n_parts = len({r["part"] for r in data["rows"] if r["set"] == part_set})
-            ax.plot(xs, ys, "o-", color=colour, label=f"{label} ({n_parts} parts, n={data.get('n', '?')})")
+            chosen = [r for r in data["rows"] if r["set"] == part_set and r["condition"] == "clean"]
+            n_parts = len({r["part"] for r in chosen})
+            per_part = sum(len(r["images"]) for r in chosen) // max(n_parts, 1)
+            ax.plot(xs, ys, "o-", color=colour, label=f"{label} ({n_parts} parts, {per_part} images each)")
             ax.plot([-5], [clean], "s", color=colour, markerfacecolor="none")
         ax.set_title(f"{part_set} parts")
         ax.set_xlabel("occlusion with clutter (%)   [square: clean]")
