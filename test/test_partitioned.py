@@ -15,7 +15,8 @@ import pytest
 
 from brepose_ros.ros.bags import write_bag
 from brepose_ros.synthetic.scenes import SceneConfig, generate_scene
-from test_transport import PLAY_BAG, REPO, START_TIMEOUT, TIMEOUT, ros_env
+from node_helpers import ros_env
+from test_transport import PLAY_BAG, REPO, START_TIMEOUT, TIMEOUT
 
 RUN_PARTITIONED = REPO / "launch_free_scripts" / "run_partitioned.py"
 

@@ -2,13 +2,13 @@
 import numpy as np
 import pytest
 
-from brepose_ros.aspect_graph import AspectGraph
 from brepose_ros.camera import Camera
 from brepose_ros.online.frame import Frame
 from brepose_ros.online.hypotheses import ViewLibrary
 from brepose_ros.online.regions import cluster_segments, normalised_region
 from brepose_ros.online.scoring import EdgeEvidence
 from brepose_ros.params import MatchParams
+from graph_helpers import one_view_graph
 
 CAMERA = Camera.from_fov(640, 480, 600.0)
 
@@ -38,16 +38,6 @@ def test_a_region_is_normalised_by_its_outline_whatever_its_inner_edges():
         assert region.scale == pytest.approx(180.0 / 600.0)  # the square root of the outline's area
         assert np.allclose(region.center, 0.0, atol=1e-12)
     assert np.array_equal(regions[0].features.segments, regions[1].features.segments[:4])
-
-
-def one_view_graph(xy_metres):
-    """An aspect graph of one view whose sections have these view coordinates."""
-    n = len(xy_metres)
-    return AspectGraph(step_sha256="", params={}, model_center=np.zeros(3), model_diameter=1.0, n_faces=1,
-                       view_directions=np.array([[0.0, 0.0, 1.0]]), view_rotations=np.eye(3)[None],
-                       seg_offsets=np.array([0, n]), seg_xy=np.asarray(xy_metres, np.float32),
-                       xy_origin=np.zeros((1, 2)), xy_scale=np.ones(1),
-                       seg_3d=np.zeros((n, 2, 3)), seg_kind=np.zeros(n, np.uint8))
 
 
 def test_a_view_is_normalised_by_its_outline_whatever_its_inner_edges():

@@ -7,6 +7,7 @@ import pytest
 from brepose_ros.online import search
 from brepose_ros.online.scoring import EdgeEvidence
 from brepose_ros.params import SearchParams
+from graph_helpers import one_view_graph
 
 
 def bracket_outline(size: float) -> np.ndarray:
@@ -113,18 +114,6 @@ def test_search_params_refuse_an_unknown_generator_and_an_empty_size_range():
         SearchParams(generators="lines")
     with pytest.raises(ValueError, match="max_size_fraction"):
         SearchParams(min_size_fraction=0.5, max_size_fraction=0.4)
-
-
-def one_view_graph(xy_metres):
-    """An aspect graph of one view (diameter 1 m) whose sections have these view coordinates."""
-    from brepose_ros.aspect_graph import AspectGraph
-
-    n = len(xy_metres)
-    return AspectGraph(step_sha256="", params={}, model_center=np.zeros(3), model_diameter=1.0, n_faces=1,
-                       view_directions=np.array([[0.0, 0.0, 1.0]]), view_rotations=np.eye(3)[None],
-                       seg_offsets=np.array([0, n]), seg_xy=np.asarray(xy_metres, np.float32),
-                       xy_origin=np.zeros((1, 2)), xy_scale=np.ones(1),
-                       seg_3d=np.zeros((n, 2, 3)), seg_kind=np.zeros(n, np.uint8))
 
 
 def test_the_search_hypothesis_names_the_drawn_view_angle_size_and_position():
