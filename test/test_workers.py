@@ -65,7 +65,6 @@ def test_split_gives_contiguous_near_equal_chunks(size, count, minimum, lengths)
 
 def test_zero_workers_means_one_per_core():
     assert resolve_workers(0) == cpu_count() >= 1 and resolve_workers(3) == 3
-    assert EstimatorParams().matching.workers == 0
 
 
 @pytest.fixture(scope="module")
