@@ -30,6 +30,7 @@ from bench.accuracy import (CONDITIONS, LOOKS, PARTS, SCENES_VERSION, SPAN, TUNI
                             distractor_meshes, scene, step_file)
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
+from brepose_ros.evaluation.figures import pyplot, save_figure  # noqa: E402
 from brepose_ros.evaluation.metrics import (ModelPoints, calibrate_min_score, evaluate_scene,  # noqa: E402
                                             precision_recall)
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
@@ -126,10 +127,7 @@ def main(argv=None) -> int:
 
 
 def plot(path: Path, scores, correct, positive, calibrated, target) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fine = np.linspace(0.0, 1.0, 101)
     precision, recall, _ = precision_recall(scores, correct, positive.sum(), fine)
@@ -158,10 +156,7 @@ def plot(path: Path, scores, correct, positive, calibrated, target) -> None:
     axes[1].set_ylabel("images")
     axes[1].legend(fontsize=8)
     fig.suptitle("score against correctness, pooled over the parts", fontsize=10)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=72)
-    plt.close(fig)
+    save_figure(fig, path, dpi=72)
 
 
 if __name__ == "__main__":

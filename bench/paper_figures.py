@@ -33,6 +33,7 @@ sys.path.insert(0, str(REPO))
 from bench.accuracy import step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
+from brepose_ros.evaluation.figures import pyplot, save_figure  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene, mean_error_rate  # noqa: E402
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
@@ -118,10 +119,7 @@ def table(title: str, xlabel: str, xs, data: dict, with_time: bool = False) -> s
 
 
 def plot(path: Path, title: str, xlabel: str, xs, data: dict, time_axis: bool = False) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axes = plt.subplots(1, 2 if time_axis else 1, figsize=(9.5 if time_axis else 5.5, 3.6), squeeze=False)
     colors = {"sharp_bracket": "tab:blue", "rounded_bracket": "tab:orange"}
@@ -142,10 +140,7 @@ def plot(path: Path, title: str, xlabel: str, xs, data: dict, time_axis: bool = 
         axes[0, 1].set_ylabel("median time per image (ms)")
     axes[0, 0].legend(fontsize=7)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=72)
-    plt.close(fig)
+    save_figure(fig, path, dpi=72)
 
 
 def main(argv=None) -> int:
@@ -208,10 +203,7 @@ def main(argv=None) -> int:
 
 def plot_bars(path: Path, data: dict) -> None:
     """Fig. 7 as bars: one per part and method."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(5, 3.2))
     labels = [f"{part.split('_')[0]}\n{method}" for part, method, _ in data]
@@ -221,10 +213,7 @@ def plot_bars(path: Path, data: dict) -> None:
     ax.set_ylim(0, 0.55)
     ax.grid(alpha=0.3, axis="y")
     ax.set_title("Fig. 7: rounded vs sharp bracket, clean", fontsize=10)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=72)
-    plt.close(fig)
+    save_figure(fig, path, dpi=72)
 
 
 if __name__ == "__main__":

@@ -19,6 +19,10 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from brepose_ros.evaluation.figures import pyplot, save_figure  # noqa: E402
+
 METRICS = {"success": ("success", "success (rot < 5 deg, t < 5 % d)"),
            "add_s": ("add_s", "ADD-S < 0.1 d")}
 SETS = ("tune", "leave-out")
@@ -50,10 +54,7 @@ def main(argv=None) -> int:
     parser.add_argument("--metric", choices=list(METRICS), default="success")
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "figures" / "accuracy_vs_occlusion.png")
     args = parser.parse_args(argv)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     merged: dict[str, dict] = {}
     for item in args.results:
@@ -88,9 +89,7 @@ def main(argv=None) -> int:
     axes[0].set_ylabel(axis_label)
     first = runs[0][1]
     fig.suptitle(f"bench/accuracy.py, {first.get('look', '?')} look, commit {first.get('commit', '?')}", fontsize=9)
-    fig.tight_layout()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out, dpi=90)
+    save_figure(fig, args.out, dpi=90)
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
 

@@ -12,6 +12,7 @@ from scipy.spatial import ConvexHull, cKDTree
 from ..aspect_graph import AspectGraph
 from ..geometry import direction_to, quaternion_from_matrix, rotation_about, rotation_angle_deg
 from ..viewsphere import nearest_views
+from .figures import pyplot, save_figure
 
 
 def viewing_direction(R: np.ndarray) -> np.ndarray:
@@ -221,10 +222,7 @@ def scene_summary(results: list[ImageResult]) -> dict:
 
 def plot_evaluation(results: list[ImageResult], path: str | Path, diameter_m: float, title: str = "") -> None:
     """Cumulative rotation / translation error curves and score against correctness."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rot = np.sort([r.errors.rotation_deg for r in results if r.errors])
     trans = np.sort([r.errors.translation_mm / (10.0 * diameter_m) for r in results if r.errors])
@@ -247,9 +245,7 @@ def plot_evaluation(results: list[ImageResult], path: str | Path, diameter_m: fl
     axes[2].set_ylim(0, 1)
     axes[2].legend(loc="lower right")
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
 
 
 def percent(count: int, total: int) -> str:
