@@ -138,6 +138,65 @@ def refine_poses_kernel(R: np.ndarray, t: np.ndarray, points: np.ndarray, lines:
                 break
 
 
+@njit(nogil=True, cache=True)
+def _pairwise_sum(values: np.ndarray, n: int) -> np.float32:
+    """numpy's float32 sum of values[:n] (n <= 128), in numpy's order to the bit: one
+    running sum below 8 values, else 8 interleaved partial sums combined as a tree."""
+    if n < 8:
+        total = np.float32(-0.0)
+        for i in range(n):
+            total += values[i]
+        return total
+    partial = values[:8].copy()
+    i = 8
+    while i < n - n % 8:
+        for k in range(8):
+            partial[k] += values[i + k]
+        i += 8
+    total = ((partial[0] + partial[1]) + (partial[2] + partial[3])) + ((partial[4] + partial[5])
+                                                                         + (partial[6] + partial[7]))
+    while i < n:
+        total += values[i]
+        i += 1
+    return total
+
+
+@njit(nogil=True, cache=True)
+def chamfer_scores_kernel(maps: np.ndarray, points: np.ndarray, orientations: np.ndarray, stride: int,
+                          views: np.ndarray, phis: np.ndarray, cos_phi: np.ndarray, sin_phi: np.ndarray,
+                          extent: float, cell: float, truncate: float, out: np.ndarray) -> None:
+    """``prefilter.ChamferPrefilter``'s score of rows k (view ``views[k]`` at rotations
+    ``phis[k]``, reduced to [0, 2 pi), with their float32 cosines and sines) into out (K, R):
+    the mean over every ``stride``-th of the view's points (at most 128) of the truncated
+    distance map ``maps`` (ORIENT_BINS, GRID, GRID) of the point's direction bin. float32
+    throughout, step for step the numpy version's arithmetic, so the scores agree to the bit.
+    """
+    n_bins, grid = maps.shape[0], maps.shape[1]
+    flat = maps.ravel()
+    extent32, cell32, truncate32 = np.float32(extent), np.float32(cell), np.float32(truncate)
+    pi32, two_pi32, bins32 = np.float32(math.pi), np.float32(2.0 * math.pi), np.float32(n_bins)
+    n_points = (points.shape[1] + stride - 1) // stride
+    distances = np.empty(n_points, np.float32)
+    for k in range(len(views)):
+        v = views[k]
+        for r in range(phis.shape[1]):
+            c, s, phi = cos_phi[k, r], sin_phi[k, r], phis[k, r]
+            for q in range(n_points):
+                x, y = points[v, q * stride, 0], points[v, q * stride, 1]
+                xr, yr = c * x - s * y, s * x + c * y
+                if abs(xr) > extent32 or abs(yr) > extent32:
+                    distances[q] = truncate32
+                    continue
+                col = min(max(int((xr + extent32) / cell32), 0), grid - 1)
+                row = min(max(int((yr + extent32) / cell32), 0), grid - 1)
+                turned = orientations[v, q * stride] + phi
+                turned -= pi32 * (np.float32(turned >= pi32) + np.float32(turned >= two_pi32))
+                direction = int(turned / pi32 * bins32) % n_bins
+                distances[q] = flat[(direction * grid + row) * grid + col]
+            # np.mean divides the float32 sum by its int64 count in float64
+            out[k, r] = np.float32(np.float64(_pairwise_sum(distances, n_points)) / n_points)
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on a tiny input."""
     R, t = np.eye(3)[None].copy(), np.array([[0.0, 0.0, 1.0]])
@@ -147,6 +206,10 @@ def warm_up() -> None:
                         np.zeros((1, 6, 6)), np.zeros(1))
     segments = np.array([[[0.0, 0.0], [1.0, 0.0]], [[0.0, 0.1], [1.0, 0.1]]])
     nearest_lines_kernel(segments, segments, 0.5, 0.9, np.empty(2, np.int64), np.empty(2))
+    phis = np.zeros((1, 2), np.float32)
+    chamfer_scores_kernel(np.zeros((6, 4, 4), np.float32), np.zeros((1, 2, 2), np.float32),
+                          np.zeros((1, 2), np.float32), 1, np.zeros(1, np.int64), phis, np.cos(phis), np.sin(phis),
+                          2.0, 1.0, 0.25, np.empty((1, 2), np.float32))
 
 
 @njit(nogil=True, cache=True)

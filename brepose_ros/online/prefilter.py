@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from ..metric_space import segment_lengths
+from .kernels import chamfer_scores_kernel
 from .workers import SERIAL, WorkerPool
 
 #: 2.5 degree bins over [0, pi): a candidate rotation is off by at most 1.25 degrees, which
@@ -84,8 +85,9 @@ class ChamferPrefilter:
     #: a point farther than a quarter of the part's size from any like edge has no
     #: counterpart; capping its distance keeps a few such points from outweighing the rest
     TRUNCATE = 0.25
-    #: views per block of ``scores``: the (BLOCK, R, P) temporaries stay in the CPU cache
-    BLOCK = 256
+    #: fewest views per worker's chunk of a score: a shorter chunk costs more to hand over
+    #: than it saves
+    MIN_CHUNK = 128
     #: the coarse stage scores every 4th point (8 of 32, still spread over the whole view)
     #: and keeps 16 x shortlist_size pairs for the full score, which then finds the same
     #: best pairs as scoring all in full (test_prefilter_shortlist_keeps_the_best_pairs_of_the_full_score)
@@ -125,57 +127,41 @@ class ChamferPrefilter:
         the full score: at 10,000 views the full score of every pair would cost most of an
         image's time. Both stages split their views between the ``pool``'s threads.
         """
-        coarse = self.scores(maps, phis, slice(None, None, self.COARSE_STRIDE), pool).ravel()
+        coarse = self.scores(maps, phis, self.COARSE_STRIDE, pool).ravel()
         keep = min(len(coarse), self.COARSE_KEEP * count)
         pairs = np.argpartition(coarse, keep - 1)[:keep] if keep < len(coarse) else np.arange(len(coarse))
         views, which = np.unravel_index(pairs, phis.shape)
         turned = np.mod(phis[views, which].astype(np.float32), np.float32(2 * np.pi))[:, None]
-        fine = np.concatenate(pool.map(
-            lambda chunk: self._block_scores(maps, self.points[views[chunk]], self.orientations[views[chunk]],
-                                             turned[chunk])[:, 0],
-            pool.split(len(views), self.BLOCK // 2)))
+        fine = self._scores_of(maps, views, turned, 1, pool)[:, 0]
         count = min(count, len(fine))
         best = np.argpartition(fine, count - 1)[:count]
         return views[best], which[best]
 
-    def scores(self, maps: np.ndarray, phis: np.ndarray, points: slice = slice(None),
-               pool: WorkerPool = SERIAL) -> np.ndarray:
-        """(V, R) mean truncated oriented distance of view v turned by phis[v, r], over the
-        view's ``points`` (all by default).
+    def scores(self, maps: np.ndarray, phis: np.ndarray, stride: int = 1, pool: WorkerPool = SERIAL) -> np.ndarray:
+        """(V, R) mean truncated oriented distance of view v turned by phis[v, r], over every
+        ``stride``-th of the view's points (all by default)."""
+        return self._scores_of(maps, np.arange(len(phis)), np.mod(phis.astype(np.float32), np.float32(2 * np.pi)),
+                               stride, pool)
 
-        Every step is over V x R x P points (10^5 to 10^6), so it runs in blocks of
-        ``BLOCK`` views, whose temporaries stay in the cache, and the slow steps are
-        avoided: one flat gather instead of a 3-index one, and no np.mod for the
-        orientation (with phi in [0, 2 pi) the turned orientation is below 3 pi, and
-        subtracting pi once or twice gives np.mod's result to the bit). The blocks are shared
-        among the ``pool``'s threads (numpy releases the GIL inside each step).
+    def _scores_of(self, maps: np.ndarray, views: np.ndarray, phis: np.ndarray, stride: int,
+                   pool: WorkerPool) -> np.ndarray:
+        """(K, R) scores of view views[k] at the rotations phis[k] (float32, in [0, 2 pi)).
+
+        Every score is over V x R x P points (10^5 to 10^6 at thousands of views): one
+        compiled loop (``kernels.chamfer_scores_kernel``, GIL released, no temporaries) per
+        chunk of rows, the chunks shared among the ``pool``'s threads. As numpy array
+        steps it held the GIL between every step and built (V, R, P) temporaries.
         """
-        phis = np.mod(phis.astype(np.float32), np.float32(2 * np.pi))
+        cos_phi, sin_phi = np.cos(phis), np.sin(phis)  # numpy's float32 cosine, as the scores always had
         out = np.empty(phis.shape, np.float32)
-
-        def score_blocks(blocks: slice) -> None:
-            for lo in range(blocks.start * self.BLOCK, min(blocks.stop * self.BLOCK, len(phis)), self.BLOCK):
-                views = slice(lo, lo + self.BLOCK)
-                out[views] = self._block_scores(maps, self.points[views, points], self.orientations[views, points],
-                                                phis[views])
-
-        pool.map(score_blocks, pool.split(-(-len(phis) // self.BLOCK)))
-        return out
-
-    def _block_scores(self, maps, points, orientations, phis):
-        c, s = np.cos(phis)[..., None], np.sin(phis)[..., None]
-        x, y = points[:, None, :, 0], points[:, None, :, 1]
-        xr, yr = c * x - s * y, s * x + c * y  # (V, R, P)
         cell = 2.0 * self.EXTENT / self.GRID
-        col = np.clip(((xr + self.EXTENT) / cell).astype(np.int32), 0, self.GRID - 1)
-        row = np.clip(((yr + self.EXTENT) / cell).astype(np.int32), 0, self.GRID - 1)
-        ori = orientations[:, None, :] + phis[..., None]
-        half_turns = (ori >= np.float32(np.pi)).astype(np.float32) + (ori >= np.float32(2 * np.pi))
-        ori -= np.float32(np.pi) * half_turns
-        b = (ori / np.pi * self.ORIENT_BINS).astype(np.int32) % self.ORIENT_BINS
-        outside = (np.abs(xr) > self.EXTENT) | (np.abs(yr) > self.EXTENT)
-        dist = np.where(outside, self.TRUNCATE, maps.ravel()[(b * self.GRID + row) * self.GRID + col])
-        return dist.mean(axis=2)
+
+        def chunk(rows: slice) -> None:
+            chamfer_scores_kernel(maps, self.points, self.orientations, stride, views[rows], phis[rows],
+                                  cos_phi[rows], sin_phi[rows], self.EXTENT, cell, self.TRUNCATE, out[rows])
+
+        pool.map(chunk, pool.split(len(views), self.MIN_CHUNK))
+        return out
 
 
 def spread_points(segments: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
