@@ -1,5 +1,7 @@
 """Pose refinement and line association against plain reference versions and exact
 answers: the fast code paths must give the same answers as the straightforward definitions."""
+from types import SimpleNamespace
+
 import cv2
 import numpy as np
 
@@ -8,6 +10,8 @@ from brepose_ros.geometry import rot_z, rotation_angle_deg
 from brepose_ros.online import refinement, scoring
 from brepose_ros.online.image_edges import EdgeParams, detect_edges
 from brepose_ros.online.lines2d import nearest_lines
+from brepose_ros.params import PoseParams
+from graph_helpers import one_view_graph
 
 
 def random_segments(rng, n, scale=1.0):
@@ -40,7 +44,7 @@ def test_refine_poses_recovers_each_pose_of_a_batch_from_exact_line_matches():
     assert np.array_equal(R[2], np.eye(3)) and np.array_equal(t[2], [0.0, 0.0, 1.0])
 
 
-def test_a_batch_refines_and_associates_each_pose_to_the_same_bits_as_alone():
+def test_a_batch_refines_each_pose_to_the_same_bits_as_alone():
     """The estimator's results must not depend on which poses share a batch."""
     rng = np.random.default_rng(4)
     R_true = [cv2.Rodrigues(rng.normal(0, 0.5, 3))[0] for _ in range(4)]
@@ -53,16 +57,42 @@ def test_a_batch_refines_and_associates_each_pose_to_the_same_bits_as_alone():
     model, image = np.concatenate([m for m, _ in pairs]), np.concatenate([i for _, i in pairs])
     spans = np.cumsum([0] + [len(m) for m, _ in pairs])
     R, t = refinement.refine_poses(R0, t0, model, image, spans, f_scale=0.002, iterations=3)
-    found = refinement.associate_poses(model, spans, R0, t0, image, tolerance=0.01)
     for b, (m, i) in enumerate(pairs):
         R_b, t_b = refinement.refine_poses(R0[b:b + 1], t0[b:b + 1], m, i, np.array([0, len(m)]),
                                              f_scale=0.002, iterations=3)
         assert np.array_equal(R_b[0], R[b]) and np.array_equal(t_b[0], t[b])
-        model_index, image_index, distances = nearest_lines(project_normalised(m, R0[b], t0[b]), image, 0.01)
-        own = (found[0] >= spans[b]) & (found[0] < spans[b + 1])
-        assert np.array_equal(found[0][own] - spans[b], model_index)
-        assert np.array_equal(found[1][own], image_index)
-        assert np.array_equal(found[2][own], distances)
+
+
+def test_refine_rounds_associate_and_refine_as_the_plain_steps_and_alone_as_in_a_batch():
+    """``PoseRefiner.refine`` (one compiled call) does, round by round, what its steps do
+    one by one: the nearest view's segments paired with their nearest image lines, then the
+    Gauss-Newton steps on the pairs; and a pose gets the same bits alone or in a batch."""
+    rng = np.random.default_rng(5)
+    R_true, t_true = cv2.Rodrigues(np.array([0.4, -0.3, 0.2]))[0], np.array([0.01, -0.02, 0.5])
+    model, lines = exact_line_matches(rng, 14, R_true, t_true)
+    clutter = random_segments(rng, 20, 0.1)
+    image = np.concatenate([lines + rng.normal(0, 0.0005, size=lines.shape), clutter])
+    graph = one_view_graph(np.zeros((len(model), 2, 2)))
+    graph.view_directions = -(R_true.T @ t_true / np.linalg.norm(t_true))[None]
+    graph.seg_3d = model
+    refiner = refinement.PoseRefiner(graph)
+    frame = SimpleNamespace(segments_n=image, camera=SimpleNamespace(focal=600.0))
+    p = PoseParams()
+    R0 = np.array([cv2.Rodrigues(rng.normal(0, 0.03, 3))[0] @ R_true for _ in range(3)])
+    t0 = t_true + rng.normal(0, 0.005, (3, 3))
+    rounds = (8.0, 4.0, 2.0, 1.0)
+    R, t = refiner.refine(R0, t0, frame, p, rounds)
+    tolerance = p.inlier_pixels / 600.0
+    for b in range(3):
+        R_b, t_b = refiner.refine(R0[b:b + 1], t0[b:b + 1], frame, p, rounds)
+        assert np.array_equal(R_b[0], R[b]) and np.array_equal(t_b[0], t[b])
+        R_ref, t_ref = R0[b:b + 1], t0[b:b + 1]
+        for factor in rounds:
+            mi, ii, _ = nearest_lines(project_normalised(model, R_ref[0], t_ref[0]), image, factor * tolerance)
+            R_ref, t_ref = refinement.refine_poses(R_ref, t_ref, model[mi], image[ii], np.array([0, len(mi)]),
+                                                   f_scale=tolerance, iterations=3 if factor > 1 else 8)
+        assert np.allclose(R[b], R_ref[0], rtol=0, atol=1e-12) and np.allclose(t[b], t_ref[0], rtol=0, atol=1e-12)
+        assert rotation_angle_deg(R[b], R_true) < rotation_angle_deg(R0[b], R_true)
 
 
 def reference_nearest_lines(model_2d, image_2d, tolerance, max_angle_deg=10.0):

@@ -75,68 +75,134 @@ def refine_poses_kernel(R: np.ndarray, t: np.ndarray, points: np.ndarray, lines:
     matrix J^T W J and weighted residual variance (left as they are for a pose that took
     no step), from which the caller forms the covariance.
     """
+    for b in range(len(R)):
+        if active[b]:
+            _gauss_newton(R[b], t[b], points, lines, per_pair, weights, ends[b], ends[b + 1], f_scale, iterations,
+                          normal_out[b], variance_out[b:b + 1])
+
+
+@njit(nogil=True, cache=True)
+def _gauss_newton(R: np.ndarray, t: np.ndarray, points: np.ndarray, lines: np.ndarray, per_pair: int,
+                  weights: np.ndarray, lo: int, hi: int, f_scale: float, iterations: int, normal_out: np.ndarray,
+                  variance_out: np.ndarray) -> None:
+    """``refine_poses_kernel`` for one pose R (3, 3), t (3,) (in place) on the points lo:hi;
+    normal_out (6, 6), variance_out (1,)."""
     jac = np.empty(6)
     hessian = np.empty((6, 6))
     gradient = np.empty(6)
     step = np.empty(6)
     turned = np.empty((3, 3))
-    for b in range(len(R)):
-        if not active[b]:
-            continue
-        lo, hi = ends[b], ends[b + 1]
-        for _ in range(iterations):
-            hessian[:] = 0.0
-            gradient[:] = 0.0
-            weighted_squares = 0.0
-            for n in range(lo, hi):
-                px, py, pz = points[n, 0], points[n, 1], points[n, 2]
-                r0 = R[b, 0, 0] * px + R[b, 0, 1] * py + R[b, 0, 2] * pz
-                r1 = R[b, 1, 0] * px + R[b, 1, 1] * py + R[b, 1, 2] * pz
-                r2 = R[b, 2, 0] * px + R[b, 2, 1] * py + R[b, 2, 2] * pz
-                x, y, z = r0 + t[b, 0], r1 + t[b, 1], max(r2 + t[b, 2], 1e-9)
-                k = n // per_pair
-                nx, ny = lines[k, 0], lines[k, 1]
-                along = nx * (x / z) + ny * (y / z)
-                residual = along + lines[k, 2]
-                # d residual / d X_cam = g, chained through X_cam = exp(w) R X + t
-                g0, g1, g2 = nx / z, ny / z, -along / z
-                jac[0], jac[1], jac[2] = r1 * g2 - r2 * g1, r2 * g0 - r0 * g2, r0 * g1 - r1 * g0
-                jac[3], jac[4], jac[5] = g0, g1, g2
-                weight = f_scale / max(abs(residual), f_scale) * weights[k]  # Huber
-                weighted_squares += weight * residual * residual
-                for i in range(6):
-                    wj = weight * jac[i]
-                    gradient[i] -= wj * residual
-                    for j in range(i + 1):
-                        hessian[i, j] += wj * jac[j]
+    for _ in range(iterations):
+        hessian[:] = 0.0
+        gradient[:] = 0.0
+        weighted_squares = 0.0
+        for n in range(lo, hi):
+            px, py, pz = points[n, 0], points[n, 1], points[n, 2]
+            r0 = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz
+            r1 = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz
+            r2 = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz
+            x, y, z = r0 + t[0], r1 + t[1], max(r2 + t[2], 1e-9)
+            k = n // per_pair
+            nx, ny = lines[k, 0], lines[k, 1]
+            along = nx * (x / z) + ny * (y / z)
+            residual = along + lines[k, 2]
+            # d residual / d X_cam = g, chained through X_cam = exp(w) R X + t
+            g0, g1, g2 = nx / z, ny / z, -along / z
+            jac[0], jac[1], jac[2] = r1 * g2 - r2 * g1, r2 * g0 - r0 * g2, r0 * g1 - r1 * g0
+            jac[3], jac[4], jac[5] = g0, g1, g2
+            weight = f_scale / max(abs(residual), f_scale) * weights[k]  # Huber
+            weighted_squares += weight * residual * residual
             for i in range(6):
-                for j in range(i):
-                    hessian[j, i] = hessian[i, j]
-            if hi - lo > 6:
-                normal_out[b] = hessian
-                variance_out[b] = weighted_squares / (hi - lo - 6)
-            damping = 1e-6 * (hessian[0, 0] + hessian[1, 1] + hessian[2, 2] + hessian[3, 3] + hessian[4, 4]
-                              + hessian[5, 5]) / 6.0  # degenerate line sets
-            for i in range(6):
-                hessian[i, i] += damping
-            if not _cholesky_solve(hessian, gradient, step):
-                break
-            finite = True
-            for i in range(6):
-                finite = finite and math.isfinite(step[i])
-            if not finite:
-                break
-            turn = _rodrigues(step[:3])
-            for i in range(3):
-                for j in range(3):
-                    turned[i, j] = turn[i, 0] * R[b, 0, j] + turn[i, 1] * R[b, 1, j] + turn[i, 2] * R[b, 2, j]
-            R[b] = turned
-            for i in range(3):
-                t[b, i] += step[3 + i]
-            if step[0] * step[0] + step[1] * step[1] + step[2] * step[2] + step[3] * step[3] + step[4] * step[4] \
-                    + step[5] * step[5] < 1e-14:
-                break
+                wj = weight * jac[i]
+                gradient[i] -= wj * residual
+                for j in range(i + 1):
+                    hessian[i, j] += wj * jac[j]
+        for i in range(6):
+            for j in range(i):
+                hessian[j, i] = hessian[i, j]
+        if hi - lo > 6:
+            normal_out[:] = hessian
+            variance_out[0] = weighted_squares / (hi - lo - 6)
+        damping = 1e-6 * (hessian[0, 0] + hessian[1, 1] + hessian[2, 2] + hessian[3, 3] + hessian[4, 4]
+                          + hessian[5, 5]) / 6.0  # degenerate line sets
+        for i in range(6):
+            hessian[i, i] += damping
+        if not _cholesky_solve(hessian, gradient, step):
+            break
+        finite = True
+        for i in range(6):
+            finite = finite and math.isfinite(step[i])
+        if not finite:
+            break
+        turn = _rodrigues(step[:3])
+        for i in range(3):
+            for j in range(3):
+                turned[i, j] = turn[i, 0] * R[0, j] + turn[i, 1] * R[1, j] + turn[i, 2] * R[2, j]
+        R[:] = turned
+        for i in range(3):
+            t[i] += step[3 + i]
+        if step[0] * step[0] + step[1] * step[1] + step[2] * step[2] + step[3] * step[3] + step[4] * step[4] \
+                + step[5] * step[5] < 1e-14:
+            break
 
+
+@njit(nogil=True, cache=True)
+def refine_rounds_kernel(R: np.ndarray, t: np.ndarray, view_directions: np.ndarray, model_center: np.ndarray,
+                         seg_offsets: np.ndarray, seg_3d: np.ndarray, image_2d: np.ndarray, image_lines: np.ndarray,
+                         tolerance: float, factors: np.ndarray, rough_iterations: int, fine_iterations: int,
+                         min_cos: float) -> None:
+    """``refinement.PoseRefiner.refine`` of poses R (B, 3, 3), t (B, 3), in place: per
+    pose and round, the graph view nearest to the pose (``AspectGraph.nearest_views``), its
+    segments seg_3d (S, 2, 3) projected and paired with their nearest image segments
+    (``nearest_lines`` at ``factors[round] * tolerance``, normalised units), then the
+    Gauss-Newton steps on the pairs (``refine_poses``: Huber at ``tolerance``,
+    ``rough_iterations`` in a round with a factor above 1, else ``fine_iterations``). A
+    pose behind the camera stops; a round with fewer than 3 pairs leaves the pose as it
+    is. One call per chunk of poses, GIL released throughout: as numpy it was a few dozen
+    short steps per round, each holding the GIL.
+    """
+    i_ux, i_uy = _unit_directions(image_2d)
+    largest = 0
+    for v in range(len(seg_offsets) - 1):
+        largest = max(largest, seg_offsets[v + 1] - seg_offsets[v])
+    projected = np.empty((largest, 2, 2))
+    best, best_cost = np.empty(largest, np.int64), np.empty(largest)
+    points = np.empty((2 * largest, 3))
+    lines = np.empty((largest, 3))
+    weights = np.ones(largest)
+    normal, variance = np.empty((6, 6)), np.empty(1)
+    for b in range(len(R)):
+        for factor in factors:
+            if not t[b, 2] > 0:
+                break
+            # the view the camera sees the part from: the largest product with R^T t + c
+            dx = model_center[0] + R[b, 0, 0] * t[b, 0] + R[b, 1, 0] * t[b, 1] + R[b, 2, 0] * t[b, 2]
+            dy = model_center[1] + R[b, 0, 1] * t[b, 0] + R[b, 1, 1] * t[b, 1] + R[b, 2, 1] * t[b, 2]
+            dz = model_center[2] + R[b, 0, 2] * t[b, 0] + R[b, 1, 2] * t[b, 1] + R[b, 2, 2] * t[b, 2]
+            view, most = 0, -np.inf
+            for v in range(len(view_directions)):
+                product = view_directions[v, 0] * dx + view_directions[v, 1] * dy + view_directions[v, 2] * dz
+                if product > most:
+                    view, most = v, product
+            lo, hi = seg_offsets[view], seg_offsets[view + 1]
+            for s in range(hi - lo):
+                for e in range(2):
+                    px, py, pz = seg_3d[lo + s, e, 0], seg_3d[lo + s, e, 1], seg_3d[lo + s, e, 2]
+                    x = R[b, 0, 0] * px + R[b, 0, 1] * py + R[b, 0, 2] * pz + t[b, 0]
+                    y = R[b, 1, 0] * px + R[b, 1, 1] * py + R[b, 1, 2] * pz + t[b, 1]
+                    z = max(R[b, 2, 0] * px + R[b, 2, 1] * py + R[b, 2, 2] * pz + t[b, 2], 1e-9)
+                    projected[s, e, 0], projected[s, e, 1] = x / z, y / z
+            _nearest_lines(projected[:hi - lo], image_2d, i_ux, i_uy, factor * tolerance, min_cos, best, best_cost)
+            pairs = 0
+            for s in range(hi - lo):
+                if best[s] >= 0:
+                    points[2 * pairs] = seg_3d[lo + s, 0]
+                    points[2 * pairs + 1] = seg_3d[lo + s, 1]
+                    lines[pairs] = image_lines[best[s]]
+                    pairs += 1
+            if pairs >= 3:
+                _gauss_newton(R[b], t[b], points, lines, 2, weights, 0, 2 * pairs, tolerance,
+                              rough_iterations if factor > 1 else fine_iterations, normal, variance)
 
 @njit(nogil=True, cache=True)
 def _pairwise_sum(values: np.ndarray, n: int) -> np.float32:
@@ -206,6 +272,11 @@ def warm_up() -> None:
                         np.zeros((1, 6, 6)), np.zeros(1))
     segments = np.array([[[0.0, 0.0], [1.0, 0.0]], [[0.0, 0.1], [1.0, 0.1]]])
     nearest_lines_kernel(segments, segments, 0.5, 0.9, np.empty(2, np.int64), np.empty(2))
+    square = np.array([[[-0.1, -0.1, 0.0], [0.1, -0.1, 0.0]], [[0.1, -0.1, 0.0], [0.1, 0.1, 0.0]],
+                       [[0.1, 0.1, 0.0], [-0.1, 0.1, 0.0]], [[-0.1, 0.1, 0.0], [-0.1, -0.1, 0.0]]])
+    drawn = square[..., :2] * 1.01
+    refine_rounds_kernel(R, t, np.array([[0.0, 0.0, -1.0]]), np.zeros(3), np.array([0, 4]), square, drawn,
+                         np.ones((4, 3)), 0.01, np.array([2.0, 1.0]), 1, 1, 0.9)
     phis = np.zeros((1, 2), np.float32)
     chamfer_scores_kernel(np.zeros((6, 4, 4), np.float32), np.zeros((1, 2, 2), np.float32),
                           np.zeros((1, 2), np.float32), 1, np.zeros(1, np.int64), phis, np.cos(phis), np.sin(phis),
@@ -220,12 +291,26 @@ def nearest_lines_kernel(model_2d: np.ndarray, image_2d: np.ndarray, tolerance: 
     The pairs are those of the former numpy matrices; the distances may differ from theirs
     in the last bit (BLAS fused its multiply-adds). A pair failing the angle test costs no
     more arithmetic."""
-    n_image = image_2d.shape[0]
-    i_ux, i_uy = np.empty(n_image), np.empty(n_image)
-    for j in range(n_image):
-        dx, dy = image_2d[j, 1, 0] - image_2d[j, 0, 0], image_2d[j, 1, 1] - image_2d[j, 0, 1]
+    i_ux, i_uy = _unit_directions(image_2d)
+    _nearest_lines(model_2d, image_2d, i_ux, i_uy, tolerance, min_cos, best, best_cost)
+
+
+@njit(nogil=True, cache=True)
+def _unit_directions(segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit direction (x, y) of each segment (N, 2, 2)."""
+    ux, uy = np.empty(segments.shape[0]), np.empty(segments.shape[0])
+    for j in range(segments.shape[0]):
+        dx, dy = segments[j, 1, 0] - segments[j, 0, 0], segments[j, 1, 1] - segments[j, 0, 1]
         length = max(math.hypot(dx, dy), 1e-12)
-        i_ux[j], i_uy[j] = dx / length, dy / length
+        ux[j], uy[j] = dx / length, dy / length
+    return ux, uy
+
+
+@njit(nogil=True, cache=True)
+def _nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, i_ux: np.ndarray, i_uy: np.ndarray, tolerance: float,
+                   min_cos: float, best: np.ndarray, best_cost: np.ndarray) -> None:
+    """``nearest_lines_kernel`` with the image segments' unit directions given."""
+    n_image = image_2d.shape[0]
     for i in range(model_2d.shape[0]):
         best[i], best_cost[i] = -1, np.inf
         ax, ay = model_2d[i, 0, 0], model_2d[i, 0, 1]

@@ -21,15 +21,18 @@ def line_equations(segments: np.ndarray) -> np.ndarray:
     return lines
 
 
+#: ``nearest_lines``' default angle: a pose a little off turns its projected edges by a few degrees
+NEAREST_MAX_ANGLE_DEG = 10.0
+
+
 def nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, tolerance: float,
-                  max_angle_deg: float = 10.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  max_angle_deg: float = NEAREST_MAX_ANGLE_DEG) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Indices (model, image) pairing each model segment with its best image segment, and
     the distance of each pair (largest distance of the image end points to the model line).
 
     A model segment keeps the image segment whose end points lie closest to the model's
     line, provided that is within ``tolerance``, the directions agree within
-    ``max_angle_deg`` (10 by default: a pose a little off turns its projected edges by a
-    few degrees) and the two overlap along the line. A compiled loop
+    ``max_angle_deg`` and the two overlap along the line. A compiled loop
     (``kernels.nearest_lines_kernel``, GIL released): it runs hundreds of times per image,
     and as dense (model x image) numpy matrices it was a large share of the refinement.
     """
@@ -37,13 +40,13 @@ def nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, tolerance: float,
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
     best, best_cost = np.empty(len(model_2d), np.int64), np.empty(len(model_2d))
     nearest_lines_kernel(np.ascontiguousarray(model_2d, dtype=float), np.ascontiguousarray(image_2d, dtype=float),
-                         float(tolerance), _cos_deg(max_angle_deg), best, best_cost)
+                         float(tolerance), cos_deg(max_angle_deg), best, best_cost)
     keep = best >= 0
     return np.nonzero(keep)[0], best[keep], best_cost[keep]
 
 
 @lru_cache(maxsize=8)
-def _cos_deg(angle_deg: float) -> float:
+def cos_deg(angle_deg: float) -> float:
     """Cosine of a fixed angle, kept: ``nearest_lines`` runs thousands of times per image."""
     return float(np.cos(np.radians(angle_deg)))
 

@@ -29,13 +29,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..aspect_graph import AspectGraph
-from ..camera import Camera, project_normalised
+from ..camera import Camera
 from ..geometry import rot_z, rotation_angle_deg, rotation_between
 from ..params import PoseParams
 from .frame import Frame
 from .hypotheses import Hypothesis
-from .kernels import refine_poses_kernel
-from .lines2d import line_equations, nearest_lines, samples_along
+from .kernels import refine_poses_kernel, refine_rounds_kernel
+from .lines2d import NEAREST_MAX_ANGLE_DEG, cos_deg, line_equations, samples_along
 from .scoring import CLEAR_SCORE, EdgeEvidence, pose_scores
 from .workers import SERIAL, WorkerPool
 
@@ -106,19 +106,6 @@ def pose_from_similarity(R_view: np.ndarray, model_center: np.ndarray, *, scale:
     center_virtual = np.array([shift[0], shift[1], 1.0]) / scale
     t = R_align @ center_virtual - R @ model_center
     return R, t
-
-
-def associate_poses(model_3d: np.ndarray, spans: np.ndarray, R: np.ndarray, t: np.ndarray, image_2d: np.ndarray, *,
-                    tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``nearest_lines`` for B poses R (B, 3, 3), t (B, 3) at once: model segments
-    ``spans[b]:spans[b + 1]`` belong to pose b. The pairing is decided segment by segment,
-    so one call does the work of B; each pose projects its own segments."""
-    if len(model_3d) == 0 or len(image_2d) == 0:
-        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    projected = np.empty(model_3d.shape[:-1] + (2,))
-    for b, (lo, hi) in enumerate(zip(spans[:-1], spans[1:])):
-        projected[lo:hi] = project_normalised(model_3d[lo:hi], R[b], t[b])
-    return nearest_lines(projected, image_2d, tolerance)
 
 
 #: reorders refine_poses' unknowns (rotation vector, translation) to PoseWithCovariance's
@@ -288,26 +275,19 @@ class PoseRefiner:
                rounds: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Re-associate the visible model edges with image lines and refine, one round per
         tolerance of ``rounds`` (units of ``pose.inlier_pixels``), for B poses R (B, 3, 3),
-        t (B, 3) at once (``refine_poses``: per-call overhead, not arithmetic, is the cost).
-        A pose behind the camera is left where it is."""
-        g, tolerance = self.graph, p.inlier_pixels / frame.camera.focal
+        t (B, 3); returns new arrays. Per pose and round: the graph view nearest to the
+        pose, its segments paired with their nearest image lines (``nearest_lines``) and
+        the Gauss-Newton steps of ``refine_poses``, all in one compiled call
+        (``kernels.refine_rounds_kernel``, GIL released): each pose refines alone, to the
+        same bits alone or in a batch. A pose behind the camera is left where it is."""
+        g = self.graph
         R, t = np.array(R, dtype=float), np.array(t, dtype=float)
-        live = np.ones(len(R), bool)
-        for factor in rounds:
-            live &= t[:, 2] > 0
-            which = np.nonzero(live)[0]
-            if len(which) == 0:
-                break
-            views = g.nearest_views(R[which], t[which])
-            lo, counts = g.seg_offsets[views], g.seg_offsets[views + 1] - g.seg_offsets[views]
-            spans = np.concatenate([[0], np.cumsum(counts)])
-            model_3d = g.seg_3d[np.arange(spans[-1]) - np.repeat(spans[:-1] - lo, counts)]
-            mi, ii, _ = associate_poses(model_3d, spans, R[which], t[which], frame.segments_n,
-                                        tolerance=factor * tolerance)
-            pairs = np.searchsorted(mi, spans)  # mi ascends, so each pose's pairs are one span
-            R[which], t[which] = refine_poses(R[which], t[which], model_3d[mi], frame.segments_n[ii], pairs,
-                                              f_scale=tolerance,
-                                              iterations=ROUGH_ITERATIONS if factor > 1 else FINE_ITERATIONS)
+        if len(frame.segments_n):
+            image = np.ascontiguousarray(frame.segments_n, dtype=float)
+            refine_rounds_kernel(R, t, g.view_directions, g.model_center, g.seg_offsets, g.seg_3d, image,
+                                 line_equations(image), p.inlier_pixels / frame.camera.focal,
+                                 np.asarray(rounds, dtype=float), ROUGH_ITERATIONS, FINE_ITERATIONS,
+                                 cos_deg(NEAREST_MAX_ANGLE_DEG))
         return R, t
 
 
