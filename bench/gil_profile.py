@@ -42,8 +42,8 @@ STEPS = [
     ("edges", "Hough", "hough_segments", "image_edges.py"),
     ("edges", "merge", "merge_segments", "image_edges.py"),
     ("edges", "refit to pixels", "refine_segments", "image_edges.py"),
-    ("frame", "edge evidence", "__init__", "scoring.py"),
-    ("frame", "undistort", "undistort", "camera.py"),
+    ("edges", "edge evidence", "__init__", "scoring.py"),
+    ("edges", "undistort", "undistort", "camera.py"),
     ("regions", "regions", "region_groups", "regions.py"),
     ("regions", "regions", "normalised_region", "regions.py"),
     ("prefilter", "rotation candidates", "rotation_candidates", "prefilter.py"),
@@ -52,17 +52,18 @@ STEPS = [
     ("matching", "similarity", "similarity_from_pairs", "matching.py"),
     ("matching", "2D ICP", "align_to_lines", "matching.py"),
     ("matching", "coverage", "coverage", "matching.py"),
-    ("refinement", "association", "associate_poses", "refinement.py"),
+    ("refinement", "line rounds", "refine", "refinement.py"),
     ("refinement", "Gauss-Newton", "refine_poses", "refinement.py"),
     ("refinement", "polish pairing", "polish_pose", "refinement.py"),
     ("refinement", "score", "pose_scores", "scoring.py"),
     ("refinement", "twins", "check_twins", "symmetry.py"),
     ("refinement", "error ratio", "edge_pairs", "scoring.py"),
 ]
-STAGE_OF = {"detect_edges": "edges", "of": "frame", "region_groups": "regions", "normalised_region": "regions",
-            "shortlist": "prefilter", "match": "matching", "verify": "refinement", "best": "refinement",
-            "check_twins": "refinement", "edge_pairs": "refinement", "hypotheses": "search"}
-STAGE_ORDER = ["edges", "frame", "regions", "prefilter", "matching", "refinement", "search", "other"]
+STAGE_OF = {"detect": "edges", "detect_edges": "edges", "of": "edges", "region_groups": "regions",
+            "normalised_region": "regions", "shortlist": "prefilter", "match": "matching",
+            "verify": "refinement", "best": "refinement", "check_twins": "refinement", "edge_pairs": "refinement",
+            "hypotheses": "search"}
+STAGE_ORDER = ["edges", "regions", "prefilter", "matching", "refinement", "search", "other"]
 FRAME = re.compile(r"^(?P<function>.+?) \((?P<file>[^():]+)(?::\d+)?\)$")
 
 

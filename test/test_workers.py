@@ -128,10 +128,12 @@ def test_parameter_changes_from_another_thread_never_break_an_image_in_flight(cl
     changer = threading.Thread(target=change)
     changer.start()
     try:
-        for _ in range(3):
+        rounds = 0
+        while rounds < 3 or (changes[0] <= 20 and rounds < 30):  # fast images: go on until enough changes
             for i, image in enumerate(images):
                 got = pose_of(estimator.estimate(image, camera))
                 assert got in (expected[0][i], expected[1][i])
+            rounds += 1
     finally:
         stop.set()
         changer.join()

@@ -4,6 +4,7 @@ Each stage lives in its own module; this one only wires them:
 
 1. ``image_edges``: line segments (pixels) and Canny edge pixels; ``frame``: both
    undistorted into normalised camera coordinates, the edge pixels prepared for scoring
+   (beside the segments, on a second worker thread)
 2. ``regions``: the whole image and clusters of touching segments, each seen by its
    virtual camera and normalised like the views
 3. ``hypotheses``: per region, the chamfer pre-filter's (view, rotation) shortlist
@@ -40,7 +41,6 @@ from ..params import EstimatorParams, SearchParams
 from .frame import Frame
 from .hypotheses import TetradHypotheses, best_per_region
 from . import kernels
-from .image_edges import detect_edges
 from .refinement import PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups
 from .scoring import CLEAR_SCORE, edge_pairs
@@ -146,13 +146,12 @@ class Estimator:
         if image.ndim < 2 or image.shape[0] != camera.height or image.shape[1] != camera.width:
             raise ValueError(f"image of shape {image.shape} does not fit the camera's "
                              f"{camera.width}x{camera.height}")
-        edges = detect_edges(image, p.edges)
+        edges, frame = Frame.detect(image, camera, p.edges, pool)
         clock = _lap(timings, "edges", clock)
         not_found = Estimate(found=False, R=None, t=None, score=0.0, error_ratio=1.0, view_index=-1,
                              n_image_segments=len(edges.segments), n_matched=0, n_nearest=0, timings=timings)
         if len(edges.segments) < MIN_REGION_SEGMENTS:
             return not_found
-        frame = Frame.of(edges, camera)
         groups = region_groups(frame, p.matching)
         if paper_only:
             return self._paper_estimate(groups, frame, p, hypotheses, pool, not_found, clock)

@@ -1,13 +1,16 @@
 """One image's edges in every form the stages after edge detection need."""
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..camera import Camera
-from .image_edges import ImageEdges
+from ..params import EdgeParams
+from .image_edges import ImageEdges, edge_pixels, line_segments
 from .scoring import EdgeEvidence
+from .workers import SERIAL, WorkerPool
 
 
 @dataclass
@@ -23,6 +26,25 @@ class Frame:
 
     @classmethod
     def of(cls, edges: ImageEdges, camera: Camera) -> "Frame":
-        evidence = EdgeEvidence(edges.edge_map, edges.gradient_x, edges.gradient_y)
+        return cls._with(edges, camera, _evidence(edges))
+
+    @classmethod
+    def detect(cls, image: np.ndarray, camera: Camera, params: EdgeParams,
+               pool: WorkerPool = SERIAL) -> tuple[ImageEdges, "Frame"]:
+        """``detect_edges`` and ``of`` at once: after Canny, the line segments (Hough, merge,
+        refit) and the evidence for scoring, which both start from the edge pixels alone,
+        run on two of the ``pool``'s threads."""
+        pixels = edge_pixels(image, params)
+        segments, evidence = pool.map(lambda job: job(), [lambda: line_segments(pixels, params),
+                                                          lambda: _evidence(pixels)])
+        edges = dataclasses.replace(pixels, segments=segments)
+        return edges, cls._with(edges, camera, evidence)
+
+    @classmethod
+    def _with(cls, edges: ImageEdges, camera: Camera, evidence: EdgeEvidence) -> "Frame":
         return cls(segments_px=edges.segments, segments_n=camera.undistort(edges.segments), camera=camera,
                    evidence=evidence, edge_points_n=camera.undistort(evidence.pixels))
+
+
+def _evidence(edges: ImageEdges) -> EdgeEvidence:
+    return EdgeEvidence(edges.edge_map, edges.gradient_x, edges.gradient_y)

@@ -60,7 +60,8 @@ class ViewLibrary:
 
     def shortlist(self, region: Region, p: MatchParams, pool: WorkerPool) -> list[tuple[int, float]]:
         """The (view, rotation) pairs closest to the region by oriented chamfer distance."""
-        phis = rotation_candidates(self.orientation_spectra, region.orientation_histogram, p.rotation_candidates)
+        phis = rotation_candidates(self.orientation_spectra, region.orientation_histogram, p.rotation_candidates,
+                                   pool)
         views, which = self.prefilter.shortlist(region.distance_maps, phis, p.shortlist_size, pool)
         return [(int(v), float(phis[v, r])) for v, r in zip(views, which)]
 

@@ -22,6 +22,7 @@ Coordinates are pixels, x right, y down, pixel centres at integer coordinates.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -58,12 +59,25 @@ def detect_edges(image: np.ndarray, params: EdgeParams = EdgeParams()) -> ImageE
     (H, W, 1), BGR or BGRA (H, W, 3|4); anything else, an empty image or NaN/inf raise
     ValueError. A constant image has no edges and gives (0, 2, 2) segments.
     """
+    pixels = edge_pixels(image, params)
+    return dataclasses.replace(pixels, segments=line_segments(pixels, params))
+
+
+def edge_pixels(image: np.ndarray, params: EdgeParams) -> ImageEdges:
+    """The first half of :func:`detect_edges`: the gray image, its gradient and Canny's edge
+    pixels, no segments yet (the estimator prepares the scoring from them meanwhile)."""
     gray = to_gray(image)
     if gray.max() == gray.min():
         flat = np.zeros(gray.shape, np.float32)
         return ImageEdges(gray, flat, flat, np.zeros(gray.shape, np.uint8), np.zeros((0, 2, 2)))
     dx, dy = colour_gradients(image, params) if params.colour and _is_colour(image) else gradients(gray, params)
-    edges = canny_from_gradients(dx, dy, params)
+    return ImageEdges(gray, dx, dy, canny_from_gradients(dx, dy, params), np.zeros((0, 2, 2)))
+
+
+def line_segments(pixels: ImageEdges, params: EdgeParams) -> np.ndarray:
+    """The second half of :func:`detect_edges`: the merged segments (N, 2, 2) of
+    :func:`edge_pixels`' result, longest first."""
+    gray, edges = pixels.gray, pixels.edge_map
     if params.detector == "lsd":
         merged = merge_segments(lsd_segments(gray, params), params)
     else:
@@ -72,7 +86,7 @@ def detect_edges(image: np.ndarray, params: EdgeParams = EdgeParams()) -> ImageE
             merged = merge_segments(refine_segments(merged, edges, params), params)
     lengths = np.linalg.norm(merged[:, 1] - merged[:, 0], axis=1)
     merged = merged[lengths >= params.min_length_fraction * float(np.hypot(*gray.shape))]
-    return ImageEdges(gray, dx, dy, edges, merged[: params.max_segments])
+    return merged[: params.max_segments]
 
 
 def extract_segments(image: np.ndarray, params: EdgeParams = EdgeParams()) -> np.ndarray:

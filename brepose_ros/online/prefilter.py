@@ -43,23 +43,31 @@ def orientation_spectra(view_hist: np.ndarray) -> np.ndarray:
     return np.conj(np.fft.rfft(view_hist, axis=1))
 
 
-def rotation_candidates(view_spectra: np.ndarray, image_hist: np.ndarray, count: int) -> np.ndarray:
+def rotation_candidates(view_spectra: np.ndarray, image_hist: np.ndarray, count: int,
+                        pool: WorkerPool = SERIAL) -> np.ndarray:
     """Candidate in-plane rotations (radians, [0, 2 pi)) turning views onto the image.
 
     view_spectra is ``orientation_spectra`` of the (V, B) view histograms: one circular
     cross-correlation per view by one inverse FFT. Each of the ``count`` best peaks
-    (modulo pi) gives two candidates, phi and phi + pi. Returns (V, 2*count).
+    (modulo pi) gives two candidates, phi and phi + pi. Returns (V, 2*count). The views
+    are split among the ``pool``'s threads (row by row the same bits; the FFT releases
+    the GIL).
     """
-    corr = np.fft.irfft(np.fft.rfft(image_hist)[None, :] * view_spectra, n=ORIENTATION_BINS, axis=1)
-    wrapped = np.concatenate([corr[:, -1:], corr, corr[:, :1]], axis=1)
-    peaks = np.where((corr >= wrapped[:, :-2]) & (corr >= wrapped[:, 2:]), corr, -np.inf)
-    ranked = np.empty((len(corr), count), dtype=int)
-    rows = np.arange(len(corr))
-    for k in range(count):  # best peak first, then the next best: a few argmax, no sort
-        ranked[:, k] = best = np.argmax(peaks, axis=1)
-        peaks[rows, best] = -np.inf
-    phi = ranked * (np.pi / ORIENTATION_BINS)
-    return np.concatenate([phi, phi + np.pi], axis=1)
+    image_spectrum = np.fft.rfft(image_hist)[None, :]
+
+    def chunk(views: slice) -> np.ndarray:
+        corr = np.fft.irfft(image_spectrum * view_spectra[views], n=ORIENTATION_BINS, axis=1)
+        wrapped = np.concatenate([corr[:, -1:], corr, corr[:, :1]], axis=1)
+        peaks = np.where((corr >= wrapped[:, :-2]) & (corr >= wrapped[:, 2:]), corr, -np.inf)
+        ranked = np.empty((len(corr), count), dtype=int)
+        rows = np.arange(len(corr))
+        for k in range(count):  # best peak first, then the next best: a few argmax, no sort
+            ranked[:, k] = best = np.argmax(peaks, axis=1)
+            peaks[rows, best] = -np.inf
+        phi = ranked * (np.pi / ORIENTATION_BINS)
+        return np.concatenate([phi, phi + np.pi], axis=1)
+
+    return np.concatenate(pool.map(chunk, pool.split(len(view_spectra), ChamferPrefilter.MIN_CHUNK)))
 
 
 class ChamferPrefilter:
