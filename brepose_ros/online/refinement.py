@@ -16,7 +16,14 @@ Refinement. Every matched view segment carries its two 3D end points on the mode
 image segment is a line. A robust Gauss-Newton (Huber weights) over the 6 pose parameters pulls
 the projected end points onto their image lines. Between rounds the visible edges of the
 graph view nearest to the current pose are projected again and re-associated with the
-image lines, with a tolerance that shrinks round by round (the schedules below).
+image lines, with a tolerance that shrinks round by round (the schedules below). A pose
+keeps the result of the wide rounds, and then of the rounds at the final tolerance, only if
+the score does not drop: from a start that is already near, a wide round pairs the edges
+whose own image line is missing with lines of neighbouring objects and pulls the pose onto
+them (a scanned part's curved outline gives a handful of lines, and 5 of 7 pairs may be
+wrong), and the score, counted on edge pixels, mostly tells that step from a good one
+(docs/results/real_lmo.md). Two checks rather than one per round: scoring is most of the
+refinement's time.
 
 The chosen pose then climbs over neighbouring views of the graph (``PoseRefiner.climb``)
 and is polished on the Canny edge pixels (``polish_pose``), which hear edges the line
@@ -208,11 +215,20 @@ class PoseRefiner:
 
     def refined_scores(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams, rounds: tuple[float, ...],
                        pool: WorkerPool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``refine`` and ``pose_scores`` of B poses, the poses split between the ``pool``'s
-        threads: each pose refines and scores to the same bits alone or in a batch."""
+        """``refine`` and ``pose_scores`` of B poses in two stages, the wide rounds and then
+        those at the final tolerance: a pose keeps a stage's result only if it scores no
+        lower (module doc). The poses are split between the ``pool``'s threads: each pose
+        refines and scores to the same bits alone or in a batch."""
         def chunk(which: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            R_c, t_c = self.refine(R[which], t[which], frame, p, rounds)
-            return R_c, t_c, pose_scores(self.graph, R_c, t_c, frame, p)
+            R_c, t_c = np.array(R[which], dtype=float), np.array(t[which], dtype=float)
+            scores = pose_scores(self.graph, R_c, t_c, frame, p)
+            for stage in (tuple(f for f in rounds if f > 1), tuple(f for f in rounds if f <= 1)):
+                if stage:
+                    R_n, t_n = self.refine(R_c, t_c, frame, p, stage)
+                    new = pose_scores(self.graph, R_n, t_n, frame, p)
+                    kept = new >= scores
+                    R_c[kept], t_c[kept], scores[kept] = R_n[kept], t_n[kept], new[kept]
+            return R_c, t_c, scores
 
         parts = pool.map(chunk, pool.split(len(R)))
         return tuple(np.concatenate([part[k] for part in parts]) for k in range(3))
