@@ -47,7 +47,7 @@ STEPS = [
     ("regions", "regions", "region_groups", "regions.py"),
     ("regions", "regions", "normalised_region", "regions.py"),
     ("prefilter", "rotation candidates", "rotation_candidates", "prefilter.py"),
-    ("prefilter", "chamfer gather", "_block_scores", "prefilter.py"),
+    ("prefilter", "chamfer gather", "_scores_of", "prefilter.py"),
     ("matching", "Kuhn-Munkres", "assign", "matching.py"),
     ("matching", "similarity", "similarity_from_pairs", "matching.py"),
     ("matching", "2D ICP", "align_to_lines", "matching.py"),

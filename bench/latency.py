@@ -20,6 +20,8 @@ alike and the ratios stay fair while the absolute times are upper bounds:
   estimator ("setup s"), the first image's time, and its ratio to the steady state (the
   median of the later images).
 
+The load average is printed before each table and at the end.
+
 Graphs (golden-spiral sampling with the step that gives about that many views) and scenes
 (clean; occluded = 30 % occlusion, off-centre, 3 clutter objects) are cached in
 data/bench/; compiling the 10,000-view sharp_bracket takes about two minutes on 2 cores.
@@ -27,6 +29,7 @@ data/bench/; compiling the 10,000-view sharp_bracket takes about two minutes on 
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import subprocess
 import sys
@@ -147,6 +150,12 @@ def start_row(path: Path, scene, images, workers: int) -> str:
             f"{peak:.0f} |")
 
 
+def load_average() -> str:
+    """The machine's load average (1, 5, 15 min) to print beside a table: the ratios hold
+    under load, the absolute times do not."""
+    return "\nload average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--views", type=int, nargs="*", default=[500, 2500, 10000])
@@ -179,6 +188,7 @@ def main(argv=None) -> int:
         return 0
 
     if "workers" in args.tables:
+        print(load_average())
         print("\n| views | scene | workers | " + " | ".join(f"{s} ms" for s in STAGES[:-1])
               + " | ms/image | images/s | speed-up | same poses | CPU ms/image |")
         print("|" + "---|" * 12)
@@ -188,6 +198,7 @@ def main(argv=None) -> int:
                 for row in workers_table(graph, scene, images, args.workers, args.rounds):
                     print(f"| {graph.n_views} | {name} {row}", flush=True)
     if "parts" in args.tables:
+        print(load_average())
         print("\n| views | scene | parts | workers each | ms/image | part-images/s | time / 1 part |")
         print("|" + "---|" * 7)
         for views, path in paths.items():
@@ -196,6 +207,7 @@ def main(argv=None) -> int:
                 for row in parts_table(graph, scene, images, args.parts, args.part_workers, args.rounds):
                     print(f"| {graph.n_views} | {name} {row}", flush=True)
     if "start" in args.tables:
+        print(load_average())
         print("\n| views | scene | workers | setup s | first image ms | steady ms | first / steady | peak RSS MB |")
         print("|" + "---|" * 8)
         for views in paths:
@@ -205,6 +217,7 @@ def main(argv=None) -> int:
                                         "--part", args.part, "--part-workers", str(args.part_workers)],
                                        capture_output=True, text=True, check=True)
                 print(f"| {views} | {name} | {args.part_workers} {child.stdout.strip()}", flush=True)
+    print(load_average())
     return 0
 
 
