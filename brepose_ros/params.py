@@ -149,7 +149,8 @@ class PoseParams(Ranged):
         "image confirms) is below this is reported ambiguous", 0.2, 0.0, 1.0)
 
 
-GENERATORS = ("tetrad", "search", "both")
+#: the hypothesis generators (``search.generators`` joins them with '+', run in that order)
+GENERATORS = ("tetrad", "search", "seeded", "windows")
 
 
 @dataclass(frozen=True)
@@ -158,8 +159,12 @@ class SearchParams(Ranged):
     search over gradient directions (``online/search.py``)."""
 
     generators: str = doc(
-        "hypothesis generators: 'tetrad' (regions + bipartite matching), 'search' (templates slid over the "
-        "image, no region normalised) or 'both'", "tetrad")
+        "hypothesis generators, joined by '+' and run in that order: 'tetrad' (regions + bipartite matching), "
+        "'search' (templates slid over the image, no region normalised), 'seeded' (the search's best templates "
+        "as seeds of the bipartite matching, each normalised in its own frame), 'windows' (the tetrad generator on "
+        "windows about the search's best places instead of the whole image and clusters); 'both' is "
+        "'search+tetrad'. A "
+        "generator after the first runs only while no pose so far scores search.enough_score", "tetrad")
     coarse_factor: int = doc("the search's coarse grid: one cell per this many pixels", 4, 1, 16)
     spread: int = doc("cells a template point may miss its edge by on the coarse grid", 1, 0, 4)
     template_points: int = doc("points per template, sampled evenly along a view's edges", 48, 8, 256)
@@ -175,13 +180,27 @@ class SearchParams(Ranged):
     hypotheses: int = doc("best distinct templates handed to the refinement", 48, 1, 256)
     distinct_fraction: float = doc(
         "templates of one view and about one angle closer than this share of their size are one", 0.2, 0.0, 1.0)
+    enough_score: float = doc(
+        "a generator after the first runs only while no pose so far scores this much", 0.95, 0.0, 1.01)
+    seeds: int = doc("'seeded': best distinct templates matched by Kuhn-Munkres, the best-covered "
+                     "'hypotheses' of them go on to the refinement", 128, 1, 1024)
+    seed_window: float = doc("'seeded', 'windows': image segments within this many part radii of a seed's "
+                             "centre are matched to its view", 1.2, 0.1, 4.0)
+    windows: int = doc("'windows': best distinct places of the search matched as regions", 6, 1, 64)
 
     def __post_init__(self):
-        if self.generators not in GENERATORS:
-            raise ValueError(f"generators must be one of {GENERATORS}, got {self.generators!r}")
+        stages = self.stages
+        if not stages or any(s not in GENERATORS for s in stages) or len(set(stages)) < len(stages):
+            raise ValueError(f"generators must be 'both' or some of {', '.join(GENERATORS)} joined by '+', "
+                             f"each once, got {self.generators!r}")
         super().__post_init__()
         if self.max_size_fraction < self.min_size_fraction:
             raise ValueError("max_size_fraction must not be below min_size_fraction")
+
+    @property
+    def stages(self) -> tuple[str, ...]:
+        """The generators in the order they run."""
+        return ("search", "tetrad") if self.generators == "both" else tuple(self.generators.split("+"))
 
 
 @dataclass(frozen=True)

@@ -58,3 +58,34 @@ def test_clusters_are_chains_of_close_end_points_largest_first():
     apart = big.copy()
     apart[2] += [0.0, 6.0]  # the top side moved away by more than the gap: two clusters
     assert len(cluster_segments(apart, gap=5.0)) == 2
+
+
+def test_a_seed_is_matched_in_its_own_frame_and_corrected_whatever_lies_outside_its_window():
+    """An L-shaped part drawn at a known similarity, clutter far off to one side (it would
+    move a hull normalisation of the whole image): a seed 9 degrees, 12 % in size and 15 px
+    off is pulled onto the truth by Kuhn-Munkres in the seed's own frame."""
+    from brepose_ros.online.hypotheses import Hypothesis, TetradHypotheses
+    from brepose_ros.online.search import _seed_region
+    from brepose_ros.online.workers import SERIAL
+    from brepose_ros.params import MatchParams
+    from test_search import bracket_outline
+
+    part = bracket_outline(0.5)
+    scale, phi = 0.6, np.radians(30.0)  # view metres -> normalised image
+    turn = np.array([[np.cos(phi), -np.sin(phi)], [np.sin(phi), np.cos(phi)]])
+    image = CAMERA.focal * scale * part @ turn.T + [CAMERA.cx, CAMERA.cy]
+    clutter = np.concatenate([square((560.0, 90.0), 50.0), square((80.0, 420.0), 40.0)])
+    frame = frame_of(np.concatenate([image, clutter]))
+    hypotheses = TetradHypotheses(one_view_graph(part), MatchParams())
+    seed = Hypothesis(_seed_region(np.eye(3)), 0, 1.12 * scale, phi + np.radians(9.0), np.array([15.0, 0.0]) / 600.0,
+                      0.0)
+    matched = hypotheses.at_seeds([seed], frame, 1.2, MatchParams(), SERIAL)
+    assert len(matched) == 1
+    h = matched[0]
+    assert h.scale == pytest.approx(scale, rel=0.01)
+    assert np.degrees(abs(h.phi - phi)) < 0.5
+    assert np.hypot(*h.shift) * CAMERA.focal < 1.0  # pixels
+    assert h.coverage > 0.9
+    # a seed whose window (108 px about (50, 30)) holds no segment gives nothing
+    far = Hypothesis(_seed_region(np.eye(3)), 0, 0.3, phi, np.array([-0.45, -0.35]), 0.0)
+    assert hypotheses.at_seeds([far], frame, 1.2, MatchParams(), SERIAL) == []

@@ -112,6 +112,10 @@ def test_template_points_lie_on_the_segments_evenly_by_length():
 def test_search_params_refuse_an_unknown_generator_and_an_empty_size_range():
     with pytest.raises(ValueError, match="generators"):
         SearchParams(generators="lines")
+    with pytest.raises(ValueError, match="generators"):
+        SearchParams(generators="tetrad+tetrad")
+    assert SearchParams(generators="both").stages == ("search", "tetrad")
+    assert SearchParams(generators="tetrad+windows").stages == ("tetrad", "windows")
     with pytest.raises(ValueError, match="max_size_fraction"):
         SearchParams(min_size_fraction=0.5, max_size_fraction=0.4)
 
@@ -142,6 +146,10 @@ def test_the_search_hypothesis_names_the_drawn_view_angle_size_and_position():
     assert best.scale == pytest.approx(pixels_per_metre / camera.focal, rel=0.13)
     ray = best.region.R_align @ [0.0, 0.0, 1.0]
     assert np.allclose(ray[:2] / ray[2] * camera.focal + [camera.cx, camera.cy], center, atol=8.0)
+    places = finder.places(finder.coarse(frame, SearchParams()), 3)
+    (first, size), others = places[0], places[1:]
+    assert np.allclose(first, center, atol=8.0) and size == pytest.approx(pixels_per_metre, rel=0.13)
+    assert all(np.hypot(*(place - first)) >= 0.5 * min(size, other) for place, other in others)
 
 
 @pytest.fixture(scope="module")

@@ -7,10 +7,14 @@ Each stage lives in its own module; this one only wires them:
    (beside the segments, on a second worker thread)
 2. ``regions``: the whole image and clusters of touching segments, each seen by its
    virtual camera and normalised like the views
-3. ``hypotheses``: per region, the chamfer pre-filter's (view, rotation) shortlist
+3. hypothesis generators (``search.generators``, one or more, in order): ``tetrad``
+   (``hypotheses``): per region, the chamfer pre-filter's (view, rotation) shortlist
    (``prefilter``), then Kuhn-Munkres, similarity and 2D ICP (``matching``): hypotheses
-   ranked by two-way edge coverage; and/or (``search.generators``) ``search``: templates of
-   the views slid over the image's gradient directions, no region normalised
+   ranked by two-way edge coverage; ``search``: templates of the views slid over the
+   image's gradient directions, no region normalised; ``seeded``: the search's best
+   templates each matched by Kuhn-Munkres to the segments around it, normalised in the
+   template's own frame (``TetradHypotheses.at_seeds``); ``windows``: the tetrad generator
+   on windows about the search's best places instead of the whole image and clusters
 4. ``refinement``: a first metric pose per hypothesis, refined on the image lines and
    scored on the edge pixels (``scoring``); the best climbed over neighbouring views and
    polished on the edge pixels
@@ -24,7 +28,8 @@ pose by the similarity alone (``refinement.pose_from_similarity``), not refined 
 verified; the paper has no "not found", so any hypothesis is reported. It is the
 baseline of bench/paper_figures.py and of the learning (brepose-learn).
 
-The template search runs first when chosen; then the whole image is matched and verified,
+The generators run in the order named; a later one only while no pose so far scores
+``search.enough_score``. The tetrad generator matches and verifies the whole image, then
 the clusters only when no pose so far scores ``scoring.CLEAR_SCORE``.
 """
 from __future__ import annotations
@@ -41,8 +46,8 @@ from ..params import EstimatorParams, SearchParams
 from .frame import Frame
 from .hypotheses import TetradHypotheses, best_per_region
 from . import kernels
-from .refinement import PoseRefiner, pose_from_similarity
-from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups
+from .refinement import Candidate, PoseRefiner, pose_from_similarity
+from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
 from .scoring import CLEAR_SCORE, edge_pairs
 from .search import TemplateSearch
 from .symmetry import check_twins
@@ -155,29 +160,10 @@ class Estimator:
         groups = region_groups(frame, p.matching)
         if paper_only:
             return self._paper_estimate(groups, frame, p, hypotheses, pool, not_found, clock)
-        candidates = []
-        generators = p.search.generators
-        if generators in ("search", "both"):
-            candidates += self._refiner.verify(search.hypotheses(frame, p.search, pool), frame, p.pose, pool)
-            clock = _lap(timings, "search", clock)
-        # the whole image first: when it holds a clear pose, the clusters (pieces of the
-        # same part, or the part among clutter) cannot add one, and their pre-filter,
-        # matching and verification are saved
-        for batch in (groups[:1], groups[1:]) if generators != "search" else ():
-            if not batch or any(c.score >= CLEAR_SCORE for c in candidates):
-                break
-            regions = [r for r in (normalised_region(indices, frame, p.matching) for indices in batch)
-                       if r is not None]
-            jobs = hypotheses.shortlist(regions, p.matching, pool)
-            clock = _lap(timings, "prefilter", clock)
-            matched = hypotheses.match(jobs, p.matching, pool)
-            clock = _lap(timings, "matching", clock)
-            if matched:
-                candidates += self._refiner.verify(best_per_region(matched, p.matching.hypotheses), frame, p.pose,
-                                                   pool)
-            clock = _lap(timings, "refinement", clock)
+        candidates = self._candidates(frame, groups, p, hypotheses, search, pool, timings, clock)
         if not candidates:
             return not_found
+        clock = time.perf_counter()
         best = self._refiner.best(candidates, frame, p.pose, pool)
         clock = _lap(timings, "refinement", clock)
         margin = None
@@ -193,6 +179,66 @@ class Estimator:
                         image_segments=pairs.image_segments, model_segments=pairs.model_segments, timings=timings,
                         matched_view=int(best.hypothesis.view), covariance=best.covariance if found else None,
                         symmetry_margin=margin, ambiguous=margin is not None and margin < p.pose.twin_margin)
+
+    def candidates(self, frame: Frame, timings: dict | None = None) -> list[Candidate]:
+        """The hypotheses of ``search.generators`` on one image's edges, each refined and
+        scored: what ``estimate`` hands to the view climb (for benches of the generators);
+        the seconds of each stage are added to ``timings`` if given."""
+        p = self._params
+        return self._candidates(frame, region_groups(frame, p.matching), p, self._hypotheses, self._search,
+                                self._pool, {} if timings is None else timings, time.perf_counter())
+
+    def _candidates(self, frame: Frame, groups: list, p: EstimatorParams, hypotheses: TetradHypotheses,
+                    search: TemplateSearch | None, pool: WorkerPool, timings: dict, clock: float) -> list[Candidate]:
+        """Refined, scored hypotheses of the chosen generators (module doc, steps 2-4)."""
+        candidates: list[Candidate] = []
+        coarse = None  # the template search's, once per image for every stage that needs it
+        for n, stage in enumerate(p.search.stages):
+            if n and any(c.score >= p.search.enough_score for c in candidates):
+                break
+            if stage != "tetrad" and coarse is None:
+                coarse = search.coarse(frame, p.search, pool)
+                clock = _lap(timings, "search", clock)
+            if stage == "search":
+                candidates += self._refiner.verify(search.best(coarse, frame, p.search.hypotheses, p.search), frame,
+                                                   p.pose, pool)
+                clock = _lap(timings, "refinement", clock)
+            elif stage == "windows":
+                windows = [segments_within(frame, center, p.search.seed_window * size / 2)
+                           for center, size in search.places(coarse, p.search.windows)]
+                candidates, clock = self._tetrads(frame, [windows], p, hypotheses, pool, timings, clock, candidates)
+            elif stage == "seeded":
+                seeds = search.best(coarse, frame, p.search.seeds, p.search)
+                matched = hypotheses.at_seeds(seeds, frame, p.search.seed_window, p.matching, pool)
+                clock = _lap(timings, "matching", clock)
+                best_covered = sorted(matched, key=lambda h: -h.coverage)[:p.search.hypotheses]
+                candidates += self._refiner.verify(best_covered, frame, p.pose, pool)
+                clock = _lap(timings, "refinement", clock)
+            else:
+                candidates, clock = self._tetrads(frame, [groups[:1], groups[1:]], p, hypotheses, pool, timings,
+                                                  clock, candidates)
+        return candidates
+
+    def _tetrads(self, frame: Frame, batches: list[list[np.ndarray]], p: EstimatorParams,
+                 hypotheses: TetradHypotheses, pool: WorkerPool, timings: dict, clock: float,
+                 candidates: list[Candidate]):
+        """``candidates`` with the tetrad generator's on batches of regions (segment indices),
+        batch by batch until a pose is clear: for the whole image, then its clusters, a clear
+        pose in the whole image means the clusters (pieces of the same part, or the part
+        among clutter) cannot add one, and their pre-filter, matching and verification are saved."""
+        for batch in batches:
+            if not batch or any(c.score >= CLEAR_SCORE for c in candidates):
+                break
+            regions = [r for r in (normalised_region(indices, frame, p.matching) for indices in batch
+                                   if len(indices) >= MIN_REGION_SEGMENTS) if r is not None]
+            jobs = hypotheses.shortlist(regions, p.matching, pool)
+            clock = _lap(timings, "prefilter", clock)
+            matched = hypotheses.match(jobs, p.matching, pool)
+            clock = _lap(timings, "matching", clock)
+            candidates = candidates + self._refiner.verify(best_per_region(matched, p.matching.hypotheses), frame,
+                                                           p.pose, pool)
+            clock = _lap(timings, "refinement", clock)
+        return candidates, clock
 
     def _paper_estimate(self, groups: list, frame: Frame, p: EstimatorParams, hypotheses: TetradHypotheses, pool,
                         not_found: Estimate, clock: float) -> Estimate:
@@ -219,7 +265,7 @@ class Estimator:
 def template_search(graph: AspectGraph, p: SearchParams) -> TemplateSearch | None:
     """The template search if the parameters use it, else None: the default (tetrad) node
     then starts without deriving templates and warming the search's kernel."""
-    return None if p.generators == "tetrad" else TemplateSearch(graph, p)
+    return None if p.stages == ("tetrad",) else TemplateSearch(graph, p)
 
 
 def _lap(timings: dict, name: str, start: float) -> float:

@@ -19,11 +19,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..aspect_graph import AspectGraph
+from ..camera import to_virtual
 from ..metric_space import outline_normalisation
 from ..params import MatchParams
 from . import matching
+from .frame import Frame
 from .prefilter import ChamferPrefilter, orientation_histogram, orientation_spectra, rotation_candidates
-from .regions import Region
+from .regions import MIN_REGION_SEGMENTS, Region, segments_within
 from .workers import WorkerPool
 
 
@@ -92,6 +94,43 @@ class TetradHypotheses:
             run = list(run)
             batches += [run[chunk] for chunk in pool.split(len(run))]
         return [h for batch in pool.map(lambda batch: self._match_batch(batch, p), batches) for h in batch]
+
+    def at_seeds(self, seeds: list[Hypothesis], frame: Frame, window: float, p: MatchParams,
+                 pool: WorkerPool) -> list[Hypothesis]:
+        """Item 2 of issue 11: each seed (a view placed at a centre, size and in-plane angle,
+        e.g. a template of ``search``) matched by Kuhn-Munkres to the image segments around
+        it, normalised with the seed's own frame rather than their hull; so an occluder or a
+        neighbour in the window moves no normalisation, and the nearest group's similarity
+        corrects the seed. Returns the aligned hypotheses (coverage ranked like the regions').
+
+        The window is the image segments whose midpoints lie within ``window`` times the
+        seed's part radius of its centre; a seed with fewer than ``MIN_REGION_SEGMENTS``
+        there gives nothing."""
+        jobs = [job for job in (self._seed_job(seed, frame, window, p) for seed in seeds) if job is not None]
+        return self.match(jobs, p, pool)
+
+    def _seed_job(self, seed: Hypothesis, frame: Frame, window: float, p: MatchParams) -> Job | None:
+        """The seed's window as a region normalised so that the seed's view, normalised as
+        the views are (``ViewLibrary``) and turned by the seed's angle, lands on it."""
+        camera, R_align = frame.camera, seed.region.R_align
+        ray = R_align @ np.array([seed.shift[0], seed.shift[1], 1.0])  # through the model centre
+        center_px = np.array([camera.fx * ray[0] / ray[2] + camera.cx, camera.fy * ray[1] / ray[2] + camera.cy])
+        radius_px = window * seed.scale * self.graph.model_diameter * camera.focal / 2
+        inside = segments_within(frame, center_px, radius_px)
+        if len(inside) < MIN_REGION_SEGMENTS:
+            return None
+        inside = inside[matching.longest(frame.segments_n[inside], p.max_image_segments)]
+        norm = self._views.normalisation[seed.view]
+        turn = matching.rotations(np.array([seed.phi]))[0]
+        # view metres -> virtual image: scale R(phi) x + shift; the view's normalisation
+        # centre and scale carried through it give the region's
+        center = seed.shift + seed.scale * turn @ norm.center
+        scale = seed.scale * norm.scale
+        virtual = to_virtual(frame.segments_n[inside], R_align)
+        region = Region(R_align=R_align, center=center, scale=scale,
+                        features=matching.describe((virtual - center) / scale), orientation_histogram=None,
+                        distance_maps=None)
+        return region, seed.view, seed.phi
 
     def _match_batch(self, jobs: list[Job], p: MatchParams) -> list[Hypothesis]:
         """``matching.align`` for jobs of one region at once (``matching.SegmentBatch``),

@@ -206,6 +206,8 @@ class PoseRefiner:
                pool: WorkerPool = SERIAL) -> list[Candidate]:
         """The first poses of the hypotheses, refined together against the image lines, and
         their scores."""
+        if not hypotheses:
+            return []
         g = self.graph
         first = [pose_from_similarity(g.view_rotations[h.view], g.model_center, scale=h.scale, phi=h.phi,
                                       shift=h.shift, R_align=h.region.R_align) for h in hypotheses]

@@ -49,6 +49,13 @@ def region_groups(frame: Frame, p: MatchParams) -> list[np.ndarray]:
     return [g for g in groups[:p.max_regions] if len(g) >= MIN_REGION_SEGMENTS]
 
 
+def segments_within(frame: Frame, center_px: np.ndarray, radius_px: float) -> np.ndarray:
+    """Indices of the segments whose midpoints lie within ``radius_px`` of ``center_px``: the
+    window about a place the template search found (``search``)."""
+    middle = frame.segments_px.mean(axis=1)
+    return np.nonzero(np.hypot(middle[:, 0] - center_px[0], middle[:, 1] - center_px[1]) < radius_px)[0]
+
+
 def normalised_region(indices: np.ndarray, frame: Frame, p: MatchParams) -> Region | None:
     """The region's longest segments on the virtual camera centred on them, normalised; and
     the pre-filter's distance maps of the edge pixels around them, normalised alike. None

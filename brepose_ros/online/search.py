@@ -27,12 +27,15 @@ Steps, per image:
    spiral) x in-plane angle x size, at every coarse cell; each template keeps its best
    position. A chunk of templates is one call, so threads share the templates
    (``workers.WorkerPool``). A first pass counts a quarter of the points (``PROBE_STRIDE``)
-   at every cell, the rest only where those hit often enough (``min_coarse_share``).
+   at every cell, the rest only where those hit often enough (``min_coarse_share``), a
+   quarter at a time, and no further once the cell cannot beat the template's best.
 4. The best distinct templates become ``Hypothesis`` objects on the virtual camera through
    their centre (``camera.virtual_alignment``): the refinement (``refinement``) turns them
    into metric poses, pulls them onto the image lines, climbs over the graph's views and
    scores them like the tetrad generator's. Duplicates (same view, about one angle step
-   and one position) are dropped; other views at one position are kept.
+   and one position) are dropped; other views at one position are kept. Or (the
+   estimator's ``seeded`` and ``windows`` generators) they seed the bipartite matching
+   (``TetradHypotheses.at_seeds``), or their best places (``places``) become regions.
 
 The template points are derived from the graph's view edges when the estimator starts
 (0.06 s of CPU for 1,505 views), not stored in the graph file (docs/DECISIONS.md).
@@ -175,13 +178,20 @@ def score_templates(maps, pad, dx, dy, bins, size_index, chance, probes, min_sha
             for x in range(w):
                 if acc[y, x] < need:
                     continue
-                hits = acc[y, x]
-                for j in range(probes, k):
-                    hits += maps[bins[t, j], pad + dy[t, j] + y, pad + dx[t, j] + x]
                 expected = 0.0
                 for b in range(maps.shape[0]):
                     if counts[b] > 0:
                         expected += counts[b] * chance[s, b, y, x]
+                # counted in chunks of ``probes`` points, given up as soon as even hits on
+                # every point left could not beat the best cell: the same best, far fewer reads
+                hits = np.int64(acc[y, x])
+                j = probes
+                while j < k and hits + (k - j) - expected > best * k:
+                    for i in range(j, min(j + probes, k)):
+                        hits += maps[bins[t, i], pad + dy[t, i] + y, pad + dx[t, i] + x]
+                    j += probes
+                if j < k:
+                    continue
                 score = (hits - expected) / k
                 if score > best:
                     best, by, bx = score, y, x
@@ -262,7 +272,10 @@ class TemplateSearch:
 
     def hypotheses(self, frame: Frame, p: SearchParams, pool: WorkerPool = SERIAL) -> list[Hypothesis]:
         """The best distinct templates of the image as hypotheses (module doc)."""
-        c = self.coarse(frame, p, pool)
+        return self.best(self.coarse(frame, p, pool), frame, p.hypotheses, p)
+
+    def best(self, c: "CoarseResult", frame: Frame, count: int, p: SearchParams) -> list[Hypothesis]:
+        """The ``count`` best distinct templates of a coarse result as hypotheses."""
         order = np.argsort(-c.score)
         order = order[c.score[order] > 0]
         center_x, center_y = c.center_px()
@@ -272,7 +285,7 @@ class TemplateSearch:
         step = 2 * np.pi / p.angles
         kept: list[int] = []
         for t in order:
-            if len(kept) == p.hypotheses:
+            if len(kept) == count:
                 break
             if not any(c.view[u] == c.view[t] and abs(np.angle(np.exp(1j * (c.angle[u] - c.angle[t])))) <= step
                        and np.hypot(center_x[u] - center_x[t], center_y[u] - center_y[t])
@@ -285,6 +298,21 @@ class TemplateSearch:
             out.append(Hypothesis(_seed_region(virtual_alignment(center_n)), int(c.view[t]), float(scale),
                                   float(c.angle[t]), np.zeros(2), float(c.score[t])))
         return out
+
+    @staticmethod
+    def places(c: "CoarseResult", count: int) -> list[tuple[np.ndarray, float]]:
+        """The ``count`` best places of a coarse result, (centre in pixels, part diameter in
+        pixels), whatever the view: a template's place counts once another's lies within half
+        the smaller of their sizes."""
+        order = np.argsort(-c.score)
+        x, y = c.center_px()
+        kept: list[int] = []
+        for t in order[c.score[order] > 0]:
+            if len(kept) == count:
+                break
+            if all(np.hypot(x[u] - x[t], y[u] - y[t]) >= 0.5 * min(c.size[u], c.size[t]) for u in kept):
+                kept.append(t)
+        return [(np.array([x[t], y[t]]), float(c.size[t])) for t in kept]
 
 
 @dataclass
