@@ -101,6 +101,8 @@ CROP_GROWTH, CROP_MIN_PX = 2.0, 160
 #: the refinement oracle's start: the truth turned by this many degrees and moved by this
 #: share of the diameter, about where a hypothesis from the right view of a 5-degree graph lands
 NEAR_DEG, NEAR_SHIFT = 5.0, 0.02
+#: the refinement's stages in the near-truth probe: the hypothesis rounds, the view climb, the polish
+NEAR_STAGES = ("rounds", "climb", "polish")
 #: grey level behind the rendered objects (``--render``)
 RENDER_BACKGROUND = 40.0
 #: overlay colours (BGR): the true pose's edges, the estimate's when correct and when not
@@ -165,8 +167,9 @@ def edge_evidence(image: np.ndarray, params, colour: bool) -> EdgeEvidence:
 
 
 def refined_from_near_truth(refiner: PoseRefiner, target: Target, frame: Frame, params: EstimatorParams,
-                            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """The estimator's refinement of one start near the truth (``from near truth``)."""
+                            rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The estimator's refinement of one start near the truth (``from near truth``): the
+    pose after each of ``NEAR_STAGES`` (``PoseRefiner.best`` of one candidate, step by step)."""
     graph = refiner.graph
     turn = cv2.Rodrigues(np.deg2rad(NEAR_DEG) * normalize(rng.normal(size=3)))[0]
     center = target.R @ graph.model_center + target.t + NEAR_SHIFT * graph.model_diameter * normalize(
@@ -174,9 +177,9 @@ def refined_from_near_truth(refiner: PoseRefiner, target: Target, frame: Frame, 
     R = turn @ target.R
     R, t, scores = refiner.refined_scores(R[None], (center - R @ graph.model_center)[None], frame, params.pose,
                                           hypothesis_rounds(params.pose.refine_iterations), SERIAL)
-    start = Candidate(float(scores[0]), R[0], t[0], None)
-    best = refiner.best([start], frame, params.pose)
-    return best.R, best.t
+    climbed = refiner.climb(Candidate(float(scores[0]), R[0], t[0], None), frame, params.pose)
+    polished = refiner.polish(climbed, frame, params.pose)
+    return [(R[0], t[0]), (climbed.R, climbed.t), (polished.R, polished.t)]
 
 
 def projection_px(model: ModelPoints, camera: Camera, R, t, target: Target, symmetric: bool) -> float:
@@ -248,15 +251,17 @@ def main(argv=None) -> int:
             truth_px = cam.project_model(graph.seg_3d[graph.visible_segments(target.R, target.t)], target.R, target.t)
             truth = float(pose_scores(graph, target.R[None], target.t[None], seen, params.pose)[0])
             size = float(np.hypot(*np.ptp(truth_px.reshape(-1, 2), axis=0)))
-            near_R, near_t = refined_from_near_truth(refiner, target, seen, params, rng)
-            near = (model.add_s if symmetric else model.add)(near_R, near_t, target.R, target.t)
+            stages = refined_from_near_truth(refiner, target, seen, params, rng)
+            near_add = [(model.add_s if symmetric else model.add)(R, t, target.R, target.t) * model.diameter / diameter
+                        for R, t in stages]
+            near_px = [projection_px(model, cam, R, t, target, symmetric) for R, t in stages]
+            near, near_projected = near_add[-1], near_px[-1]
             projected = projection_px(model, cam, estimate.R, estimate.t, target, symmetric)
-            near_projected = projection_px(model, cam, near_R, near_t, target, symmetric)
             rows.append(dict(obj=obj, frame=target.frame, visible=target.visible, error=error,
                              correct=error < ADD_THRESHOLD, score=estimate.score, truth=truth,
                              projected=projected, projected_correct=projected < PROJECTION_PX,
-                             near_correct=near * model.diameter / diameter < ADD_THRESHOLD,
-                             near_projected_correct=near_projected < PROJECTION_PX,
+                             near_correct=near < ADD_THRESHOLD, near_projected_correct=near_projected < PROJECTION_PX,
+                             near_add=near_add, near_px=near_px,
                              support=support(edge_evidence(image, params.edges, False), truth_px, tolerance),
                              explained=seen.evidence.explained(truth_px, tolerance, params.pose.min_margin_pixels),
                              size=size, seconds=seconds,
@@ -273,7 +278,7 @@ def main(argv=None) -> int:
                 cv2.imwrite(str(overlays / name), picture)
             print(f"{NAMES[obj]:12s} {target.frame:5d} vis {target.visible:.2f} size {size:4.0f} px  "
                   f"ADD(-S) {error:6.2f} d {projected:6.1f} px  score {estimate.score:.2f} truth {truth:.2f}  "
-                  f"from near truth {near * model.diameter / diameter:5.2f} d {near_projected:6.1f} px  "
+                  f"from near truth {near:5.2f} d {near_projected:6.1f} px  "
                   f"{seconds:.2f} s",
                   file=sys.stderr, flush=True)
         estimator.close()
@@ -315,6 +320,16 @@ def report(rows: list[dict], args, params: EstimatorParams) -> None:
               f"{median(mine, 'explained')} | {fooled} of {len(wrong)} | "
               f"{recall(mine, 'near_correct')} / {recall(mine, 'near_projected_correct')} | "
               f"{median(mine, 'seconds')} |")
+    print(f"\nFrom near truth, stage by stage: ADD(-S) < {ADD_THRESHOLD:g} d / 2D projection < {PROJECTION_PX:g} px "
+          "after each stage")
+    print("| object | " + " | ".join(NEAR_STAGES) + " |")
+    print("|---|" + "---|" * len(NEAR_STAGES))
+    for obj in [*args.objects, None]:
+        mine = [r for r in rows if obj is None or r["obj"] == obj]
+        cells = [f"{100 * np.mean([r['near_add'][k] < ADD_THRESHOLD for r in mine]):.1f} / "
+                 f"{100 * np.mean([r['near_px'][k] < PROJECTION_PX for r in mine]):.1f} %"
+                 for k in range(len(NEAR_STAGES))]
+        print(f"| {NAMES[obj] if obj else '**all**'} | " + " | ".join(cells) + " |")
     per_image = [sum(r["seconds"] for r in rows if r["frame"] == f) for f in sorted({r["frame"] for r in rows})]
     print(f"\ntime per image (all its targets): median {np.median(per_image):.1f} s; "
           f"per estimate: median {np.median([r['seconds'] for r in rows]):.2f} s")
