@@ -19,8 +19,9 @@ rarely pin; the 2D figure tells a pose in the right place from one that is not.
 
 Diagnostics of what real light does to the method, per target:
 
-* ``truth``: the estimator's score (``scoring.pose_scores``: the F-measure of the support
-  and explained shares of ``EdgeEvidence`` on the Canny edge pixels) of the ground-truth
+* ``truth``: the estimator's score (``scoring.pose_scores``: ``EdgeEvidence.shares`` on the
+  Canny edge pixels, the F-measure of the share of the model confirmed beyond chance and
+  the share of the seen image edges explained, times its significance) of the ground-truth
   pose. When a wrong estimate scores higher, the score is fooled; when the truth scores
   higher, the search missed it.
 * ``support grey / colour``: the share of the projected model edges at the true pose that
@@ -263,7 +264,8 @@ def main(argv=None) -> int:
                              near_correct=near < ADD_THRESHOLD, near_projected_correct=near_projected < PROJECTION_PX,
                              near_add=near_add, near_px=near_px,
                              support=support(edge_evidence(image, params.edges, False), truth_px, tolerance),
-                             explained=seen.evidence.explained(truth_px, tolerance, params.pose.min_margin_pixels),
+                             explained=seen.evidence.shares(truth_px, tolerance,
+                                                            params.pose.min_margin_pixels).explained,
                              size=size, seconds=seconds,
                              colour_support=support(edge_evidence(image, params.edges, True), truth_px, tolerance)))
             correct = rows[-1]["correct"]

@@ -281,6 +281,9 @@ def warm_up() -> None:
     chamfer_scores_kernel(np.zeros((6, 4, 4), np.float32), np.zeros((1, 2, 2), np.float32),
                           np.zeros((1, 2), np.float32), 1, np.zeros(1, np.int64), phis, np.cos(phis), np.sin(phis),
                           2.0, 1.0, 0.25, np.empty((1, 2), np.float32))
+    near, edges = np.zeros((8, 6, 6), np.uint8), np.zeros((4, 4), np.uint8)
+    pose_evidence_kernel(segments * 3.0, near, np.zeros((8, 6, 6), np.float32), edges,
+                         np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 3.0]]), 1.0, 2, 1, np.zeros(5))
 
 
 @njit(nogil=True, cache=True)
@@ -331,3 +334,107 @@ def _nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, i_ux: np.ndarray,
             start, end = ux * p0x + uy * p0y - along_origin, ux * p1x + uy * p1y - along_origin
             if min(max(start, end), length) > max(min(start, end), 0.0):
                 best[i], best_cost[i] = j, perp
+
+
+@njit(nogil=True, cache=True)
+def pose_evidence_kernel(model_px: np.ndarray, near: np.ndarray, chance: np.ndarray, edges: np.ndarray,
+                         outline: np.ndarray, tolerance: float, cell: int, reach: int, out: np.ndarray) -> None:
+    """What ``scoring.EdgeEvidence.evidence`` counts for one pose, into ``out`` (5,).
+
+    model_px (S, 2, 2) the projected visible model segments, pixels; near (BINS, H + 2,
+    W + 2) 0/1 per direction bin, within ``tolerance`` of a like edge pixel, a False border
+    around the image;
+    chance (BINS, H + 2, W + 2) per direction bin the local share of such pixels, bordered
+    alike; edges (H, W) 0/1 the edge pixels; outline (P, 2) the grown convex outline's corners.
+
+    out[0] the model length sampled (a point every 2 pixels, at most 2,000 per segment),
+    out[1] the length a like edge pixel confirms, out[2] the length chance would confirm;
+    out[3] the edge pixels inside the outline in seen cells, out[4] those of them within
+    ``tolerance`` of a model segment. A cell (a ``cell``-pixel square) is seen when the
+    model length confirmed in it, less what chance confirms, is at least half the model
+    length in it, or, holding none, in the cells within ``reach`` of it: where the model's
+    own edges are missing, or confirmed no more than chance would (dense texture), an
+    occluder may be in front, and its edges say nothing against the pose.
+    """
+    out[:] = 0.0
+    bins, height, width = near.shape[0], edges.shape[0], edges.shape[1]
+    rows, cols = (height + cell - 1) // cell, (width + cell - 1) // cell
+    cell_model = np.zeros((rows, cols))
+    cell_confirmed = np.zeros((rows, cols))
+    cell_chance = np.zeros((rows, cols))
+    for s in range(model_px.shape[0]):
+        ax, ay = model_px[s, 0, 0], model_px[s, 0, 1]
+        dx, dy = model_px[s, 1, 0] - ax, model_px[s, 1, 1] - ay
+        length = math.sqrt(dx * dx + dy * dy)
+        count = min(max(int(math.ceil(length / 2.0)), 1), 2000)
+        weight = length / count
+        angle = math.atan2(dy, dx) % math.pi
+        b = int(angle / math.pi * bins) % bins
+        for j in range(count):
+            frac = (j + 0.5) / count
+            px, py = ax + frac * dx, ay + frac * dy
+            x = min(max(int(np.rint(px)) + 1, 0), width + 1)
+            y = min(max(int(np.rint(py)) + 1, 0), height + 1)
+            confirmed = near[b, y, x] != 0
+            out[0] += weight
+            out[2] += weight * chance[b, y, x]
+            if confirmed:
+                out[1] += weight
+            if 1 <= x <= width and 1 <= y <= height:
+                cell_model[(y - 1) // cell, (x - 1) // cell] += weight
+                cell_chance[(y - 1) // cell, (x - 1) // cell] += weight * chance[b, y, x]
+                if confirmed:
+                    cell_confirmed[(y - 1) // cell, (x - 1) // cell] += weight
+    # the outline's bounding box in the image
+    x0, y0, x1, y1 = width, height, 0, 0
+    for i in range(outline.shape[0]):
+        x0 = min(x0, int(math.floor(outline[i, 0])))
+        x1 = max(x1, int(math.ceil(outline[i, 0])) + 1)
+        y0 = min(y0, int(math.floor(outline[i, 1])))
+        y1 = max(y1, int(math.ceil(outline[i, 1])) + 1)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    if x1 <= x0 or y1 <= y0:
+        return
+    seen = np.zeros((rows, cols), np.bool_)
+    for r in range(y0 // cell, (y1 - 1) // cell + 1):
+        for c in range(x0 // cell, (x1 - 1) // cell + 1):
+            model, confirmed, expected = cell_model[r, c], cell_confirmed[r, c], cell_chance[r, c]
+            if model == 0.0:  # no model edge here: judged by the cells around it
+                for rr in range(max(r - reach, 0), min(r + reach + 1, rows)):
+                    for cc in range(max(c - reach, 0), min(c + reach + 1, cols)):
+                        model += cell_model[rr, cc]
+                        confirmed += cell_confirmed[rr, cc]
+                        expected += cell_chance[rr, cc]
+            seen[r, c] = model > 0.0 and confirmed - expected >= 0.5 * model
+    # the model drawn into the box, each pixel within tolerance of a point every pixel along it
+    drawn = np.zeros((y1 - y0, x1 - x0), np.bool_)
+    radius = int(math.floor(tolerance))
+    for s in range(model_px.shape[0]):
+        ax, ay = model_px[s, 0, 0], model_px[s, 0, 1]
+        dx, dy = model_px[s, 1, 0] - ax, model_px[s, 1, 1] - ay
+        count = min(max(int(math.ceil(math.sqrt(dx * dx + dy * dy))), 1), 4000)
+        for j in range(count + 1):
+            cx, cy = int(np.rint(ax + j / count * dx)), int(np.rint(ay + j / count * dy))
+            if cx < x0 - radius or cx >= x1 + radius or cy < y0 - radius or cy >= y1 + radius:
+                continue
+            for oy in range(-radius, radius + 1):
+                for ox in range(-radius, radius + 1):
+                    if ox * ox + oy * oy <= tolerance * tolerance and x0 <= cx + ox < x1 and y0 <= cy + oy < y1:
+                        drawn[cy + oy - y0, cx + ox - x0] = True
+    # edge pixels inside the convex outline, row by row
+    corners = outline.shape[0]
+    for y in range(y0, y1):
+        left, right = np.inf, -np.inf
+        for i in range(corners):
+            ax, ay = outline[i, 0], outline[i, 1]
+            bx, by = outline[(i + 1) % corners, 0], outline[(i + 1) % corners, 1]
+            if (ay <= y < by) or (by <= y < ay):
+                x = ax + (y - ay) * (bx - ax) / (by - ay)
+                left, right = min(left, x), max(right, x)
+        if right < left:
+            continue
+        for x in range(max(int(math.ceil(left)), x0), min(int(math.floor(right)) + 1, x1)):
+            if edges[y, x] != 0 and seen[y // cell, x // cell]:
+                out[3] += 1.0
+                if drawn[y - y0, x - x0]:
+                    out[4] += 1.0

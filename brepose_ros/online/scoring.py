@@ -1,14 +1,15 @@
 """Verification: how well a pose's projected model edges and the image's edge pixels
-explain each other (the score), and the seed paper's error ratio at the final pose.
+explain each other beyond chance (the score), and the seed paper's error ratio at the
+final pose.
 
-The score is what every stage after matching compares: hypotheses of all regions, the
-steps of the view climb, the polish, and the found / not-found decision.
+The score is what every stage after matching compares: hypotheses of all generators, the
+steps of the view climb, the polish, the twin check, and the found / not-found decision.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import cv2
 import numpy as np
@@ -16,6 +17,7 @@ import numpy as np
 from ..aspect_graph import AspectGraph
 from ..camera import project_normalised
 from ..params import EstimatorParams, PoseParams
+from .kernels import pose_evidence_kernel
 from .lines2d import convex_hull, nearest_lines, samples_along
 
 if TYPE_CHECKING:
@@ -34,35 +36,28 @@ CLEAR_SCORE = 0.95
 
 
 def pose_scores(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame", p: PoseParams) -> np.ndarray:
-    """For B poses (B, 3, 3), (B, 3): F-measure of two shares on the image's edge pixels
-    (``EdgeEvidence``; the first share of all poses in one call).
+    """For B poses (B, 3, 3), (B, 3): ``Shares.score`` of ``EdgeEvidence.shares`` on the
+    image's edge pixels, 0 for a pose behind the camera or projecting smaller than
+    ``pose.min_size_pixels`` (a part that small is not recognisable, and a tiny pose fits
+    any edges).
 
-    Of the projected visible model edges, the share an image edge confirms; of the
-    image edges inside the projected part's outline, the share a model edge explains.
-    Either alone is fooled: a pose far away projects small onto dense edges, a pose too
-    close covers every edge in the image; and a pose projecting smaller than
-    ``pose.min_size_pixels`` scores 0. Neither share depends on the region a
-    hypothesis came from, so hypotheses of all regions compare.
+    Of the projected visible model edges, the share an image edge confirms beyond what
+    chance would (occlusion lowers it by what it hides, clutter does not raise it); of the
+    image edges inside the projected part's outline where the part is seen, the share a
+    model edge explains (so a pose too small, sitting on the part's inner edges, is
+    punished); their F-measure weighed by how unlikely the confirmations are by chance.
+    Nothing depends on the region a hypothesis came from, so hypotheses of all generators
+    compare.
     """
-    scored, drawn = [], []
+    scores = np.zeros(len(R))
     for b, view in enumerate(graph.nearest_views(R, t)):
         if t[b][2] <= 0:
             continue
         model_px = frame.camera.project_model(graph.seg_3d[graph.view_slice(view)], R[b], t[b])
         extent = np.ptp(model_px.reshape(-1, 2), axis=0) if len(model_px) else np.zeros(2)
         if np.hypot(*extent) < p.min_size_pixels:
-            continue  # a part this small is not recognisable, and a tiny pose fits any edges
-        scored.append(b)
-        drawn.append(model_px)
-    scores = np.zeros(len(R))
-    if not scored:
-        return scores
-    tolerance = p.inlier_pixels
-    spans = np.cumsum([0] + [len(m) for m in drawn])
-    confirmed = frame.evidence.supports(np.concatenate(drawn), spans, tolerance)
-    for b, c, model_px in zip(scored, confirmed, drawn):
-        explained = frame.evidence.explained(model_px, tolerance, p.min_margin_pixels)
-        scores[b] = 2 * c * explained / max(c + explained, 1e-12)
+            continue
+        scores[b] = frame.evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels).score
     return scores
 
 
@@ -96,6 +91,34 @@ def edge_pairs(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame",
                      model_segments=camera.project_model(visible[model_index][nearest], R, t))
 
 
+class Shares(NamedTuple):
+    """What the image says about one pose (``EdgeEvidence.shares``), each in [0, 1]."""
+
+    #: of the projected visible model edge length, the share like edge pixels confirm
+    #: beyond what chance would confirm there
+    confirmed: float
+    #: of the edge pixels inside the grown outline where the part is seen, the share that
+    #: lie on a projected model edge
+    explained: float
+    #: how unlikely the confirmations are by chance: 1 - exp(-length x KL / SIGNIFICANT_PIXELS)
+    significance: float
+
+    @property
+    def score(self) -> float:
+        """The F-measure of the two shares, weighed by the significance."""
+        return 2 * self.confirmed * self.explained / max(self.confirmed + self.explained, 1e-12) * self.significance
+
+
+def kl_divergence(share: float, chance: float) -> float:
+    """KL divergence (nats) of a Bernoulli of ``share`` from one of ``chance``, 0 when the
+    share is no more than chance: per sample, the exponent of the Chernoff bound on the
+    probability that chance alone confirms this share."""
+    if share <= chance:
+        return 0.0
+    share, chance = min(share, 1.0 - 1e-12), max(chance, 1e-12)
+    return float(share * np.log(share / chance) + (1.0 - share) * np.log((1.0 - share) / (1.0 - chance)))
+
+
 class EdgeEvidence:
     """What the image says about edges, prepared once per image for scoring poses.
 
@@ -105,20 +128,35 @@ class EdgeEvidence:
 
     * ``supports`` (model -> image): share of the projected model edge length within
       ``tolerance`` of an edge pixel of like direction (oriented chamfer: each model point
-      looks up the distance to the nearest edge pixel in its direction bin or the two next
-      to it).
-    * ``explained`` (image -> model): share of the edge pixels inside the projected part's
-      convex outline, grown by ``OUTLINE_MARGIN``, lying within ``tolerance`` of a
-      projected model edge. The margin, at least ``min_margin_px``, is what stops a small
-      pose that fits one inner feature (a window of the part) from explaining everything
-      it covers: a relative margin alone grows with the pose, and poses 5x too far away
-      that sat on one hole of the part outscored the true pose on clean images.
+      looks up whether an edge pixel in its direction bin or the two next to it is that
+      near). The twin check compares poses by it on the edges that tell them apart.
+    * ``shares``, the score's three parts (``Shares``), counted in one compiled pass per
+      pose (``kernels.pose_evidence_kernel``, GIL released):
+      - *confirmed*: the same look-ups, corrected for chance the a-contrario way: a model
+        point's chance of being confirmed is the share of pixels near a like edge in the
+        ``CHANCE_WINDOW`` square around it (``chance``, once per image), and the share is
+        (confirmed - expected) / (length - expected). Dense clutter or texture confirms a
+        wrong pose by chance, and then expects as much: the share stays near 0.
+      - *explained*: of the edge pixels inside the projected part's convex outline, grown
+        by ``OUTLINE_MARGIN`` (at least ``min_margin_px``), those within ``tolerance`` of a
+        projected model edge, counted only in *seen* cells (``SEEN_CELL`` squares where at
+        least half the model length is confirmed beyond chance; a cell without model
+        edges takes the cells up to ``SEEN_REACH`` away). An occluder hides model edges,
+        so its own edges fall in cells that are not seen and do not count against the
+        pose. The margin is what stops a small pose that fits one inner feature (a window
+        of the part) from explaining everything it covers: the part's edges around the
+        window lie next to the window's seen edges.
+      - *significance*: 1 - exp(-length x KL(confirmed share || chance) / ``SIGNIFICANT_PIXELS``),
+        the Chernoff bound on chance producing the confirmations, made a share. A small
+        pose has few edge pixels to show, so it must match cleanly to be believed; a pose
+        far too large finds little of its length confirmed. The score is the F-measure of
+        the two shares times the significance (``Shares.score``).
 
     Both run hundreds of times per image and only ask whether a distance is within
-    ``tolerance``, so neither computes distances: with OpenCV's 3x3 chamfer distance
+    ``tolerance``, so none computes distances: with OpenCV's 3x3 chamfer distance
     (``cv2.distanceTransform(..., DIST_L2, 3)``, an exact shortest path in integer steps)
     "within r of a set" is the set dilated by the chamfer ball of radius r
-    (``chamfer_ball``), several times cheaper than the transform. ``supports`` dilates,
+    (``chamfer_ball``), several times cheaper than the transform. ``near_like`` dilates,
     once per tolerance, the edge pixels of each direction bin together with the two next
     to it, so that a model point needs one look-up.
     """
@@ -129,6 +167,21 @@ class EdgeEvidence:
     #: the outline grows by a fifth, so that edges just outside a pose that projects a
     #: little small still count against it
     OUTLINE_MARGIN = 0.2
+    #: the window of the local edge density that gives a model point's chance of being
+    #: confirmed, pixels: local enough for a patch of texture, wide enough that a pose's
+    #: own edge fills little of it (61 measured no better, docs/results/verification.md)
+    CHANCE_WINDOW = 31
+    #: cells of this many pixels decide where the part is seen (``kernels.pose_evidence_kernel``);
+    #: a cell holding no model edge is judged by those up to ``SEEN_REACH`` cells away, so
+    #: that the outline's margin next to a seen model edge still counts
+    SEEN_CELL = 16
+    SEEN_REACH = 2
+    #: the confirmed evidence, in pixels of model length times nats of KL divergence from
+    #: chance, at which the significance reaches 1 - 1/e: a part perfectly confirmed where
+    #: chance is 1/4 (1.4 nats a pixel) needs about 115 px of edge for that, 350 px for 0.95.
+    #: With samples 4 px apart counted as independent, that bounds the chance of the match
+    #: by e^-40; chosen on the tuning parts against 320 and 480 (docs/results/verification.md)
+    SIGNIFICANT_PIXELS = 160.0
 
     def __init__(self, edge_map: np.ndarray, gradient_x: np.ndarray, gradient_y: np.ndarray):
         """From Canny's edge map and the image gradient it was found on (``ImageEdges``)."""
@@ -148,6 +201,7 @@ class EdgeEvidence:
         for step in (-1, 0, 1):
             self.like_edges[(bins + step) % self.BINS, rows, cols] = 1
         self._near_like = {}  # tolerance -> like_edges dilated by its chamfer ball
+        self._chance = {}  # tolerance -> chance()
 
     def orientation_bin(self, segments: np.ndarray) -> np.ndarray:
         return self._bins_of(segments[:, 1] - segments[:, 0])
@@ -223,31 +277,42 @@ class EdgeEvidence:
         radius = max(float(np.sqrt(np.mean(np.sum((hull - center) ** 2, axis=1)))), 1.0)
         return center + (1.0 + max(cls.OUTLINE_MARGIN, min_margin_px / radius)) * (hull - center)
 
-    def explained(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float) -> float:
+    def shares(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float) -> "Shares":
+        """The ``Shares`` of a pose's projected visible model segments ``model_px``
+        (S, 2, 2), pixels (class doc)."""
         if len(model_px) == 0:
-            return 0.0
+            return Shares(0.0, 0.0, 0.0)
         h, w = self.shape
-        # a pose far off projects far outside: clipped a few image sizes out, the hull stays
-        # what it covers of the image and its corners fit OpenCV's int32 points
-        pts = np.clip(np.asarray(model_px, np.float64).reshape(-1, 2), -4.0 * max(h, w), 5.0 * max(h, w))
-        hull = self.grown_outline(pts, min_margin_px)
-        # work in the outline's bounding box only: a part rarely fills the image
-        pad = int(np.ceil(tolerance_px)) + 1
-        x0, y0 = np.maximum(np.floor(hull.min(axis=0)).astype(int) - pad, 0)
-        x1, y1 = np.minimum(np.ceil(hull.max(axis=0)).astype(int) + pad + 1, [w, h])
-        if x1 <= x0 or y1 <= y0:
-            return 0.0
-        offset = np.array([x0, y0])
-        outline = np.zeros((y1 - y0, x1 - x0), np.uint8)
-        cv2.fillConvexPoly(outline, np.round(hull - offset).astype(np.int32), 1)
-        inside = self.edges[y0:y1, x0:x1] & (outline > 0)
-        total = np.count_nonzero(inside)
-        if total == 0:
-            return 0.0
-        drawn = np.zeros(outline.shape, np.uint8)
-        cv2.polylines(drawn, np.rint(pts.reshape(-1, 2, 2) - offset).astype(np.int32), False, 1, 1)
-        near = cv2.dilate(drawn, chamfer_ball(tolerance_px)) > 0
-        return float(np.count_nonzero(near & inside) / total)
+        # a pose far off projects far outside: clipped a few image sizes out, the outline
+        # stays what it covers of the image
+        model_px = np.clip(np.asarray(model_px, np.float64), -4.0 * max(h, w), 5.0 * max(h, w))
+        counts = np.zeros(5)
+        pose_evidence_kernel(np.ascontiguousarray(model_px), self.near_like(tolerance_px).view(np.uint8),
+                             self.chance(tolerance_px), self.edges.view(np.uint8),
+                             self.grown_outline(model_px.reshape(-1, 2), min_margin_px), float(tolerance_px),
+                             self.SEEN_CELL, self.SEEN_REACH, counts)
+        length, confirmed, by_chance, seen_edges, explained = counts
+        if length <= 0:
+            return Shares(0.0, 0.0, 0.0)
+        surprise = length * kl_divergence(confirmed / length, by_chance / length)
+        return Shares(confirmed=float(max(confirmed - by_chance, 0.0) / max(length - by_chance, 1e-12)),
+                      explained=float(explained / seen_edges) if seen_edges > 0 else 0.0,
+                      significance=1.0 - float(np.exp(-surprise / self.SIGNIFICANT_PIXELS)))
+
+    def chance(self, tolerance_px: float) -> np.ndarray:
+        """(BINS, H + 2, W + 2) float32: per direction bin, the chance that a model point of
+        that direction is confirmed here, the share of pixels within ``tolerance_px`` of a
+        like edge pixel (``near_like``) in the ``CHANCE_WINDOW`` square around it, with a
+        border of 0 like ``near_like``. Cached per tolerance."""
+        if tolerance_px not in self._chance:
+            near = self.near_like(tolerance_px).view(np.uint8)
+            chance = np.zeros(near.shape, np.float32)
+            for b in range(self.BINS):
+                chance[b, 1:-1, 1:-1] = cv2.boxFilter(near[b, 1:-1, 1:-1].astype(np.float32), -1,
+                                                      (self.CHANCE_WINDOW, self.CHANCE_WINDOW),
+                                                      borderType=cv2.BORDER_REFLECT)
+            self._chance[tolerance_px] = chance
+        return self._chance[tolerance_px]
 
 
 @lru_cache(maxsize=16)
