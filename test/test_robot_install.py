@@ -87,7 +87,11 @@ def test_ros_extra_alone_runs_the_node_without_the_cad_stack(sample_step, tmp_pa
                           str(scene.folder / "camera.json")], capture_output=True, text=True, env=env,
                          cwd=tmp_path, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]
-    assert run.stdout.splitlines()[0].startswith("found"), run.stdout
+    # the node answered with a score; found or not is the estimator's business: on this
+    # 320 x 240 image with a 20-degree graph its pose is 25 degrees off, which the former
+    # score reported as found (0.695) and the a-contrario score does not (0.48)
+    verdict, score = run.stdout.splitlines()[0].rsplit(" ", 1)
+    assert verdict in ("found", "not found") and 0.0 < float(score) <= 1.0, run.stdout
     assert "loaded: []" in run.stdout
 
     compile_cli = subprocess.run([str(venv / "bin" / "brepose-compile"), str(sample_step)],
