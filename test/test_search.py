@@ -169,6 +169,8 @@ def bracket_graph(builtin_step, tmp_path_factory):
 @pytest.mark.parametrize("generators, condition, least", [
     ("search", dict(), 3),
     ("both", dict(occlusion=0.3), 2),  # test_estimator.py asks as much of the tetrads alone
+    # the default: the search's windows and seeds among clutter on a varied look (2 of 6 measured)
+    ("tetrad+windows+seeded", dict(offcenter=True, clutter=4, look="varied"), 1),
 ])
 def test_the_estimator_finds_the_part_with_the_search_as_generator(bracket_graph, tmp_path, generators, condition,
                                                                     least):
@@ -185,5 +187,8 @@ def test_the_estimator_finds_the_part_with_the_search_as_generator(bracket_graph
     estimator = Estimator(graph, EstimatorParams().with_flat({"search.generators": generators}))
     results = evaluate_scene(load_scene(tmp_path / "scene"), estimator, model)
     estimator.close()
-    assert all("search" in r.estimate.timings for r in results)
+    if not generators.startswith("tetrad"):
+        assert all("search" in r.estimate.timings for r in results)
+    else:  # after the tetrads the search runs only while no pose is clear: here at least once
+        assert any("search" in r.estimate.timings for r in results)
     assert sum(bool(r.errors and r.errors.success) for r in results) >= least, scene_summary(results)

@@ -263,8 +263,8 @@ class Estimator:
 
 
 def template_search(graph: AspectGraph, p: SearchParams) -> TemplateSearch | None:
-    """The template search if the parameters use it, else None: the default (tetrad) node
-    then starts without deriving templates and warming the search's kernel."""
+    """The template search if the parameters use it, else None: a node of the tetrad
+    generator alone then starts without deriving templates and warming the search's kernel."""
     return None if p.stages == ("tetrad",) else TemplateSearch(graph, p)
 
 
