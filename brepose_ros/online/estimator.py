@@ -229,8 +229,8 @@ class Estimator:
         for batch in batches:
             if not batch or any(c.score >= CLEAR_SCORE for c in candidates):
                 break
-            regions = [r for r in (normalised_region(indices, frame, p.matching) for indices in batch
-                                   if len(indices) >= MIN_REGION_SEGMENTS) if r is not None]
+            regions = [r for r in (normalised_region(indices, frame, p.matching) for indices in batch)
+                       if r is not None]
             jobs = hypotheses.shortlist(regions, p.matching, pool)
             clock = _lap(timings, "prefilter", clock)
             matched = hypotheses.match(jobs, p.matching, pool)

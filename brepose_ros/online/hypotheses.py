@@ -114,7 +114,7 @@ class TetradHypotheses:
         the views are (``ViewLibrary``) and turned by the seed's angle, lands on it."""
         camera, R_align = frame.camera, seed.region.R_align
         ray = R_align @ np.array([seed.shift[0], seed.shift[1], 1.0])  # through the model centre
-        center_px = np.array([camera.fx * ray[0] / ray[2] + camera.cx, camera.fy * ray[1] / ray[2] + camera.cy])
+        center_px = camera.project(ray)
         radius_px = window * seed.scale * self.graph.model_diameter * camera.focal / 2
         inside = segments_within(frame, center_px, radius_px)
         if len(inside) < MIN_REGION_SEGMENTS:

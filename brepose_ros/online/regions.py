@@ -59,7 +59,10 @@ def segments_within(frame: Frame, center_px: np.ndarray, radius_px: float) -> np
 def normalised_region(indices: np.ndarray, frame: Frame, p: MatchParams) -> Region | None:
     """The region's longest segments on the virtual camera centred on them, normalised; and
     the pre-filter's distance maps of the edge pixels around them, normalised alike. None
-    when the segments cannot be normalised (all on one line or point)."""
+    when there are fewer than ``MIN_REGION_SEGMENTS`` or they cannot be normalised (all on
+    one line or point)."""
+    if len(indices) < MIN_REGION_SEGMENTS:
+        return None
     indices = indices[matching.longest(frame.segments_n[indices], p.max_image_segments)]
     try:
         center = outline_normalisation(frame.segments_n[indices]).center
