@@ -164,7 +164,8 @@ class SearchParams(Ranged):
         "as seeds of the bipartite matching, each normalised in its own frame), 'windows' (the tetrad generator on "
         "windows about the search's best places instead of the whole image and clusters); 'both' is "
         "'search+tetrad'. A "
-        "generator after the first runs only while no pose so far scores search.enough_score. Default: "
+        "generator after the first runs only while the best pose so far, climbed and polished, scores below "
+        "search.enough_score. Default: "
         "'tetrad+windows+seeded' (docs/results/search.md: clutter 0.21 -> 0.46 tune, 0.04 -> 0.10 leave-out, at "
         "about 8x the time)", "tetrad+windows+seeded")
     coarse_factor: int = doc("the search's coarse grid: one cell per this many pixels", 4, 1, 16)
@@ -183,7 +184,9 @@ class SearchParams(Ranged):
     distinct_fraction: float = doc(
         "templates of one view and about one angle closer than this share of their size are one", 0.2, 0.0, 1.0)
     enough_score: float = doc(
-        "a generator after the first runs only while no pose so far scores this much", 0.95, 0.0, 1.01)
+        "a generator after the first runs only while the best pose so far, climbed and polished, scores below "
+        "this (0.85: on the tuning parts' bench scenes no wrong pose of the tetrads scored it after the climb "
+        "where a later generator found the right one)", 0.85, 0.0, 1.01)
     seeds: int = doc("'seeded': best distinct templates matched by Kuhn-Munkres, the best-covered "
                      "'hypotheses' of them go on to the refinement", 128, 1, 1024)
     seed_window: float = doc("'seeded', 'windows': image segments within this many part radii of a seed's "
