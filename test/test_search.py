@@ -56,8 +56,8 @@ def template_scores(evidence, points, angles, candidates, factor=4, spread=1):
         dy = np.rint(pts[:, 1] / factor).astype(np.int16)[None]
         bins = (np.mod(angles + turn, np.pi) / np.pi * search.BINS).astype(np.uint8)[None] % search.BINS
         score, y, x = np.zeros(1), np.zeros(1, np.int64), np.zeros(1, np.int64)
-        search.score_templates(maps.maps, pad, dx, dy, bins, np.zeros(1, np.int64), chance, len(points) // 4, 0.0,
-                               score, y, x)
+        search.score_templates(maps.maps, maps.bounds, pad, dx, dy, bins, np.zeros(1, np.int64), chance,
+                               len(points) // 4, 0.0, 0, score, y, x)
         out.append((score[0], x[0] * factor + (factor - 1) / 2 - shift_x, y[0] * factor + (factor - 1) / 2 - shift_y))
     return out
 
@@ -87,6 +87,45 @@ def test_occluded_part_among_clutter_ranks_first_and_is_placed_right():
     true_score, x, y = scored[0]
     assert true_score > max(s for s, _, _ in scored[1:]) + 0.05, [round(s, 2) for s, _, _ in scored]
     assert np.hypot(x - center[0], y - center[1]) <= 2 * 4, (x, y)  # two coarse cells: the spread
+
+
+def plain_best(maps, pad, dx, dy, bins, chance, probes, need):
+    """Each template's best score and cell by counting every point at every cell."""
+    h, w = chance.shape[2:]
+    out = []
+    for t in range(len(dx)):
+        hits = np.stack([maps[bins[t, j], pad + dy[t, j]:pad + dy[t, j] + h, pad + dx[t, j]:pad + dx[t, j] + w]
+                         for j in range(dx.shape[1])]).astype(int)
+        counts = np.bincount(bins[t], minlength=search.BINS).astype(np.float32)
+        expected = sum((counts[b] * chance[0, b]).astype(np.float64) for b in range(search.BINS) if counts[b])
+        score = np.where(hits[:probes].sum(axis=0) >= need, (hits.sum(axis=0) - expected) / dx.shape[1], -1.0)
+        y, x = np.unravel_index(np.argmax(score), score.shape)
+        out.append((score[y, x], y, x) if score[y, x] > -1.0 else (-1.0, -1, -1))
+    return out
+
+
+@pytest.mark.parametrize("density", [0.03, 0.4])
+def test_the_kernel_ranks_its_best_templates_as_counting_everything_does(density):
+    """The kernel's blocks and early give-ups change no score or cell of the ``keep`` best
+    templates, on sparse and on dense response maps; the others are unranked (-1) or exact."""
+    rng = np.random.default_rng(1)
+    h, w, pad, k, count = 30, 40, 6, 24, 60
+    maps = np.zeros((search.BINS, h + 2 * pad, w + 2 * pad), np.uint8)
+    maps[:, pad:pad + h, pad:pad + w] = rng.random((search.BINS, h, w)) < density
+    dx, dy = (rng.integers(-pad + 1, pad - 1, (count, k)).astype(np.int16) for _ in range(2))
+    bins = rng.integers(0, search.BINS, (count, k)).astype(np.uint8)
+    chance = rng.uniform(0, density, (1, search.BINS, h, w)).astype(np.float32)
+    probes, share = k // 4, 0.3
+    truth = plain_best(maps, pad, dx, dy, bins, chance, probes, int(np.ceil(share * probes)))
+    for keep in (0, 5):
+        score, y, x = np.zeros(count), np.zeros(count, np.int64), np.zeros(count, np.int64)
+        search.score_templates(maps, search.block_bounds(maps), pad, dx, dy, bins, np.zeros(count, np.int64),
+                               chance, probes, share, keep, score, y, x)
+        top = sorted(range(count), key=lambda t: -truth[t][0])[:keep or count]
+        for t in range(count):
+            if t in top or score[t] > -1.0:
+                assert score[t] == pytest.approx(truth[t][0], abs=1e-12) and (y[t], x[t]) == truth[t][1:], t
+        assert keep == 0 or (score > -1.0).sum() < count  # the limit gave some up
 
 
 def test_a_view_seen_edge_on_is_not_a_start_of_the_search():

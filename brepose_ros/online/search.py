@@ -27,8 +27,10 @@ Steps, per image:
    spiral) x in-plane angle x size, at every coarse cell; each template keeps its best
    position. A chunk of templates is one call, so threads share the templates
    (``workers.WorkerPool``). A first pass counts a quarter of the points (``PROBE_STRIDE``)
-   at every cell, the rest only where those hit often enough (``min_coarse_share``), a
-   quarter at a time, and no further once the cell cannot beat the template's best.
+   on blocks of 2 x 2 cells, then cell by cell on the rows of blocks where they hit often
+   enough (``min_coarse_share``); the rest of the points only at cells where those do, a
+   quarter at a time, and no further once the cell cannot beat the template's best or the
+   ``ranked_templates``-th best template so far (which the stages never reach down to).
 4. The best distinct templates become ``Hypothesis`` objects on the virtual camera through
    their centre (``camera.virtual_alignment``): the refinement (``refinement``) turns them
    into metric poses, pulls them onto the image lines, climbs over the graph's views and
@@ -118,6 +120,9 @@ class ResponseMaps:
     pad: int
     factor: int
     shape: tuple[int, int]  # coarse (H, W)
+    #: (2, 2, BINS, H2, W2): ``bounds[py, px, b, Y, X]`` is set if ``maps[b]`` is set in any of
+    #: the 2 x 2 cells from (2 Y + py, 2 X + px): the kernel's block pass reads rows of it
+    bounds: np.ndarray
 
     @classmethod
     def of(cls, evidence: EdgeEvidence, factor: int, spread: int, pad: int) -> "ResponseMaps":
@@ -130,7 +135,7 @@ class ResponseMaps:
         maps = np.zeros((BINS, hc + 2 * pad, wc + 2 * pad), np.uint8)
         for b in range(BINS):
             maps[b, pad:pad + hc, pad:pad + wc] = cv2.dilate(pooled[b], kernel)
-        return cls(maps, pad, factor, (hc, wc))
+        return cls(maps, pad, factor, (hc, wc), block_bounds(maps))
 
     def chance(self, window: int) -> np.ndarray:
         """(BINS, H, W) float32: each bin's share of set cells in a ``window``-wide square
@@ -144,39 +149,106 @@ class ResponseMaps:
         return out
 
 
+def block_bounds(maps: np.ndarray) -> np.ndarray:
+    """``ResponseMaps.bounds`` of maps (BINS, H, W): the maximum over 2 x 2 cells, split by
+    the parity of its first row and column so that the kernel reads each as a plain row."""
+    bins, h, w = maps.shape
+    padded = np.zeros((bins, h + 2, w + 2), np.uint8)
+    padded[:, :h, :w] = maps
+    block = np.maximum(np.maximum(padded[:, :-1, :-1], padded[:, 1:, :-1]),
+                       np.maximum(padded[:, :-1, 1:], padded[:, 1:, 1:]))
+    out = np.zeros((2, 2, bins, (h + 3) // 2, (w + 3) // 2), np.uint8)
+    for py in range(2):
+        for px in range(2):
+            part = block[:, py::2, px::2]
+            out[py, px, :, :part.shape[1], :part.shape[2]] = part
+    return out
+
+
 @njit(nogil=True, cache=True)
-def score_templates(maps, pad, dx, dy, bins, size_index, chance, probes, min_share, best_score, best_y, best_x):
+def _keep_largest(heap, size, value):
+    """Push ``value`` into the min-heap ``heap[:size]`` of the largest ``len(heap)`` values
+    pushed so far; returns the new size (``heap[0]`` is the smallest kept once full)."""
+    if size < len(heap):
+        i, size = size, size + 1
+        heap[i] = value
+        while i > 0 and heap[(i - 1) // 2] > heap[i]:
+            parent = (i - 1) // 2
+            heap[parent], heap[i] = heap[i], heap[parent]
+            i = parent
+        return size
+    if value <= heap[0]:
+        return size
+    heap[0], i = value, 0
+    while 2 * i + 1 < size:
+        child = 2 * i + 1
+        if child + 1 < size and heap[child + 1] < heap[child]:
+            child += 1
+        if heap[i] <= heap[child]:
+            break
+        heap[i], heap[child] = heap[child], heap[i]
+        i = child
+    return size
+
+
+@njit(nogil=True, cache=True)
+def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes, min_share, keep, best_score,
+                    best_y, best_x):
     """Coarse search kernel over templates ``t`` (rows of dx, dy, bins: (T, K) offsets in
     coarse cells and direction bins of each template's points; ``size_index`` (T,) picks the
     chance maps (S, BINS, H, W) of its size). Writes each template's best score, the share
     of its points that hit minus the share expected by chance (module doc), and where.
 
-    Two passes: the first ``probes`` points (spread along the template) are counted at
-    every cell; only cells where at least ``min_share`` of them hit are counted in full."""
+    Three passes: the first ``probes`` points (spread along the template) are counted on
+    2 x 2 blocks of cells (``ResponseMaps.bounds``: a point hits a block if it hits any of
+    its cells); on the rows of blocks where at least ``min_share`` of them hit, cell by
+    cell; only cells where at least ``min_share`` of them hit are counted in full.
+
+    Only the ``keep`` best templates are ranked (``keep`` 0: all): a template that cannot
+    beat the ``keep``-th best so far gets score -1, so its cells are given up early. The
+    ``keep`` best of all templates get the same scores and cells as without the limit."""
     n_templates, k = dx.shape
     h, w = chance.shape[2], chance.shape[3]
-    acc = np.zeros((h, w), np.int16)
+    h2, w2 = (h + 1) // 2, (w + 1) // 2
+    acc = np.zeros((h, w), np.uint8)  # probes <= 255
+    block_acc = np.zeros((h2, w2), np.uint8)
     counts = np.zeros(maps.shape[0], np.float32)
     need = max(1, int(np.ceil(min_share * probes)))
+    heap = np.empty(max(keep, 1), np.float64)
+    kept = 0
     for t in range(n_templates):
-        acc[:, :] = 0
         counts[:] = 0
         for j in range(k):
             counts[bins[t, j]] += 1
+        block_acc[:, :] = 0
         for j in range(probes):
             b = bins[t, j]
-            oy = pad + dy[t, j]
-            ox = pad + dx[t, j]
-            for y in range(h):
-                row = maps[b, oy + y, ox:ox + w]
-                line = acc[y]
-                for x in range(w):
+            oy, ox = pad + dy[t, j], pad + dx[t, j]
+            for y in range(h2):
+                row = bounds[oy & 1, ox & 1, b, (oy >> 1) + y, (ox >> 1):(ox >> 1) + w2]
+                line = block_acc[y]
+                for x in range(w2):
                     line[x] += row[x]
         s = size_index[t]
-        best, by, bx = -1.0, -1, -1
+        best = heap[0] if 0 < keep == kept else -1.0
+        by, bx = -1, -1
         for y in range(h):
+            if y % 2 == 0:  # a new row of blocks: is any of them worth counting cell by cell?
+                worth = False
+                for x in range(w2):
+                    if block_acc[y // 2, x] >= need:
+                        worth = True
+                        break
+            if not worth:
+                continue
+            line = acc[y]
+            line[:] = 0
+            for j in range(probes):
+                row = maps[bins[t, j], pad + dy[t, j] + y, pad + dx[t, j]:pad + dx[t, j] + w]
+                for x in range(w):
+                    line[x] += row[x]
             for x in range(w):
-                if acc[y, x] < need:
+                if line[x] < need:
                     continue
                 expected = 0.0
                 for b in range(maps.shape[0]):
@@ -184,7 +256,7 @@ def score_templates(maps, pad, dx, dy, bins, size_index, chance, probes, min_sha
                         expected += counts[b] * chance[s, b, y, x]
                 # counted in chunks of ``probes`` points, given up as soon as even hits on
                 # every point left could not beat the best cell: the same best, far fewer reads
-                hits = np.int64(acc[y, x])
+                hits = np.int64(line[x])
                 j = probes
                 while j < k and hits + (k - j) - expected > best * k:
                     for i in range(j, min(j + probes, k)):
@@ -195,6 +267,10 @@ def score_templates(maps, pad, dx, dy, bins, size_index, chance, probes, min_sha
                 score = (hits - expected) / k
                 if score > best:
                     best, by, bx = score, y, x
+        if by < 0:
+            best = -1.0
+        elif keep > 0:
+            kept = _keep_largest(heap, kept, best)
         best_score[t], best_y[t], best_x[t] = best, by, bx
 
 
@@ -215,8 +291,8 @@ class TemplateSearch:
         """Compile (or load from numba's cache) the kernel now, not on the first image."""
         maps = np.zeros((BINS, 3, 3), np.uint8)
         one = np.zeros((1, 1), np.int16)
-        score_templates(maps, 1, one, one, one.astype(np.uint8), np.zeros(1, np.int64),
-                        np.zeros((1, BINS, 1, 1), np.float32), 1, 0.5, np.zeros(1), np.zeros(1, np.int64),
+        score_templates(maps, block_bounds(maps), 1, one, one, one.astype(np.uint8), np.zeros(1, np.int64),
+                        np.zeros((1, BINS, 1, 1), np.float32), 1, 0.5, 1, np.zeros(1), np.zeros(1, np.int64),
                         np.zeros(1, np.int64))
 
     @staticmethod
@@ -263,9 +339,9 @@ class TemplateSearch:
                               size=np.tile(sizes, len(views) * len(angles)),
                               size_index=np.tile(np.arange(len(sizes)), len(views) * len(angles)), factor=factor)
         def run(chunk: slice) -> None:
-            score_templates(maps.maps, pad, dx[chunk], dy[chunk], bins[chunk], result.size_index[chunk], chance,
-                            lib.n_points // PROBE_STRIDE, p.min_coarse_share, result.score[chunk], result.y[chunk],
-                            result.x[chunk])
+            score_templates(maps.maps, maps.bounds, pad, dx[chunk], dy[chunk], bins[chunk], result.size_index[chunk],
+                            chance, lib.n_points // PROBE_STRIDE, p.min_coarse_share, ranked_templates(p),
+                            result.score[chunk], result.y[chunk], result.x[chunk])
 
         pool.map(run, pool.split(n))
         return result
@@ -333,6 +409,13 @@ class CoarseResult:
         """The templates' best positions in pixels (the centres of their cells)."""
         half = (self.factor - 1) / 2.0
         return self.x * self.factor + half, self.y * self.factor + half
+
+
+def ranked_templates(p: SearchParams) -> int:
+    """How many of the best coarse templates the kernel ranks exactly: 8 times as many as the
+    most a stage takes (the seeds' 128 distinct templates lay within the best 157-332 of
+    10,080 on the bench images, docs/DECISIONS.md); the rest are given up early."""
+    return 8 * max(p.seeds, p.hypotheses, p.windows)
 
 
 def _seed_region(R_align: np.ndarray) -> Region:
