@@ -50,19 +50,7 @@ def main(argv=None) -> int:
     for entry in scene.entries[:args.first]:
         frame = Frame.of(detect_edges(cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED), p.edges), camera)
         c = search.coarse(frame, p.search)
-        center = entry.R @ graph.model_center + entry.t
-        center_n = center[:2] / center[2]
-        R_virtual = virtual_alignment(center_n).T @ entry.R
-        true_size = camera.focal * graph.model_diameter / np.linalg.norm(center)
-        true_px = np.array([camera.fx * center_n[0] + camera.cx, camera.fy * center_n[1] + camera.cy])
-        angles, views = np.unique(c.angle), np.unique(c.view)
-        turned = np.einsum("aij,vjk->avik", np.stack([rot_z(a) for a in angles]), graph.view_rotations[views])
-        cos = (np.einsum("avij,ij->av", turned, R_virtual) - 1) / 2
-        rotation = np.degrees(np.arccos(np.clip(cos, -1, 1)))[np.searchsorted(angles, c.angle),
-                                                              np.searchsorted(views, c.view)]
-        x, y = c.center_px()
-        near = (rotation < NEAR_DEG) & (np.abs(np.log(c.size / true_size)) < np.log(NEAR_SIZE)) \
-            & (np.hypot(x - true_px[0], y - true_px[1]) < NEAR_POSITION * true_size)
+        near = near_templates(c, graph, camera, entry)
         order = np.argsort(-c.score)
         rank = np.empty_like(order)
         rank[order] = np.arange(len(order))
@@ -80,6 +68,23 @@ def main(argv=None) -> int:
           f"{np.mean(found & (ranks < 100)):.2f} / {np.mean(found & (ranks < 1000)):.2f}; "
           f"a hypothesis handed to the refinement near the truth: {np.mean(kept_near):.2f}")
     return 0
+
+
+def near_templates(c, graph, camera, entry) -> np.ndarray:
+    """Which coarse templates lie near the true pose (module doc)."""
+    center = entry.R @ graph.model_center + entry.t
+    center_n = center[:2] / center[2]
+    R_virtual = virtual_alignment(center_n).T @ entry.R
+    true_size = camera.focal * graph.model_diameter / np.linalg.norm(center)
+    true_px = np.array([camera.fx * center_n[0] + camera.cx, camera.fy * center_n[1] + camera.cy])
+    angles, views = np.unique(c.angle), np.unique(c.view)
+    turned = np.einsum("aij,vjk->avik", np.stack([rot_z(a) for a in angles]), graph.view_rotations[views])
+    cos = (np.einsum("avij,ij->av", turned, R_virtual) - 1) / 2
+    rotation = np.degrees(np.arccos(np.clip(cos, -1, 1)))[np.searchsorted(angles, c.angle),
+                                                          np.searchsorted(views, c.view)]
+    x, y = c.center_px()
+    return (rotation < NEAR_DEG) & (np.abs(np.log(c.size / true_size)) < np.log(NEAR_SIZE)) \
+        & (np.hypot(x - true_px[0], y - true_px[1]) < NEAR_POSITION * true_size)
 
 
 def hypothesis_near(graph, h, entry) -> bool:

@@ -1,0 +1,152 @@
+"""Where the estimator loses a partly hidden part: per image of the cached bench scenes,
+each stage's view of the truth, and the stage that loses it.
+
+    python bench/occlusion_diagnosis.py [--n 8] [--parts sharp_bracket ...] \
+        [--conditions occl30+clutter ...] [group.key=value ...]
+
+Per image: the truth's score as it is and refined like a hypothesis, then polished
+(``truth`` / ``refined``, against ``pose.min_score`` and the chosen pose's score), the
+score's parts at the refined truth (confirmed / explained / significance), the rank among
+all coarse templates of the best near-truth one (``search_oracle``), whether a seed of
+the ``seeded`` stage and a place of the ``windows`` stage lie near the truth, whether a
+refined candidate does (recall, bench/hypothesis_recall.py's definition), and the final
+pose. The loss, the first that applies:
+
+- ``ok``: the final pose is a success and found;
+- ``wall``: even the refined truth scores below ``pose.min_score``;
+- ``coarse``: no seed and no place near the truth, and no candidate near it;
+- ``matching``: a seed or a place is near the truth but no candidate is (the matching or
+  the refinement of the hypotheses lost it);
+- ``choice``: a candidate is near the truth, but the climb and polish end elsewhere
+  (a wrong pose outscores it, or its climb drifts);
+- ``low``: the final pose is right but scores below ``pose.min_score``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import Counter
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+from bench.accuracy import CONDITIONS, PARTS, SCENES_VERSION, part_set, step_file  # noqa: E402
+from bench.graphs import cached_graph_path  # noqa: E402
+from bench.hypothesis_recall import near_truth  # noqa: E402
+from bench.search_oracle import hypothesis_near, near_templates  # noqa: E402
+from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
+from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
+from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
+from brepose_ros.online.estimator import Estimator  # noqa: E402
+from brepose_ros.online.frame import Frame  # noqa: E402
+from brepose_ros.online.image_edges import detect_edges  # noqa: E402
+from brepose_ros.online.refinement import Candidate, hypothesis_rounds  # noqa: E402
+from brepose_ros.online.scoring import pose_scores  # noqa: E402
+from brepose_ros.online.symmetry import check_twins  # noqa: E402
+from brepose_ros.online.workers import SERIAL  # noqa: E402
+from brepose_ros.params import EstimatorParams  # noqa: E402
+from brepose_ros.scene_folder import load_scene  # noqa: E402
+
+LOSSES = ("ok", "wall", "coarse", "matching", "choice", "low")
+
+
+def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> dict:
+    g, p, refiner, search = estimator.graph, estimator.params, estimator._refiner, estimator._search
+    R0, t0 = entry.R[None].astype(float), entry.t[None].astype(float)
+    truth = float(pose_scores(g, R0, t0, frame, p.pose)[0])
+    R1, t1, s1 = refiner.refined_scores(R0, t0, frame, p.pose, hypothesis_rounds(p.pose.refine_iterations), SERIAL)
+    polished = refiner.polish(Candidate(float(s1[0]), R1[0], t1[0], None), frame, p.pose)
+    refined = polished if polished.score >= s1[0] else Candidate(float(s1[0]), R1[0], t1[0], None)
+    model_px = frame.camera.project_model(g.seg_3d[g.view_slice(g.nearest_view(refined.R, refined.t))],
+                                          refined.R, refined.t)
+    parts = frame.evidence.shares(model_px, p.pose.inlier_pixels, p.pose.min_margin_pixels)
+    refined_ok = pose_errors(refined.R, refined.t, entry.R, entry.t, model, g).success
+    coarse = search.coarse(frame, p.search)
+    near = near_templates(coarse, g, frame.camera, entry)
+    order = np.argsort(-coarse.score)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    best_rank = int(rank[near].min()) if near.any() else -1
+    seeds = search.best(coarse, frame, p.search.seeds, p.search)
+    seed_near = any(hypothesis_near(g, h, entry) for h in seeds)
+    center = entry.R @ g.model_center + entry.t
+    true_px = frame.camera.project(center)
+    true_size = frame.camera.focal * g.model_diameter / np.linalg.norm(center)
+    place_near = any(np.hypot(*(c - true_px)) < 0.25 * true_size and abs(np.log(size / true_size)) < np.log(1.5)
+                     for c, size in search.places(coarse, p.search.windows))
+    candidates = estimator.candidates(frame)
+    near_c = [c for c in candidates if near_truth(c.R, c.t, entry, g)]
+    final = refiner.best(candidates, frame, p.pose) if candidates else None
+    if final is not None and p.pose.twin_check:
+        final, _ = check_twins(final, g, refiner, frame, p.pose)
+    success = final is not None and pose_errors(final.R, final.t, entry.R, entry.t, model, g).success
+    found = final is not None and final.score >= p.pose.min_score
+    if success and found:
+        loss = "ok"
+    elif refined.score < p.pose.min_score:
+        loss = "wall"
+    elif not near_c:
+        loss = "matching" if (seed_near or place_near) else "coarse"
+    elif not success:
+        loss = "choice"
+    else:
+        loss = "low"
+    return dict(truth=truth, refined=refined.score, refined_ok=refined_ok, parts=parts, rank=best_rank,
+                seed_near=seed_near, place_near=place_near, recall=bool(near_c),
+                near_score=max((c.score for c in near_c), default=0.0),
+                best_candidate=max((c.score for c in candidates), default=0.0),
+                final=final.score if final is not None else 0.0, success=success, loss=loss,
+                visible=getattr(entry, "visible_fraction", None))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--n", type=int, default=8)
+    parser.add_argument("--start", type=int, default=0)
+    parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "rounded_bracket", "base_attachment"],
+                        choices=list(PARTS))
+    parser.add_argument("--conditions", nargs="*", default=["occl30+clutter"], choices=list(CONDITIONS))
+    parser.add_argument("overrides", nargs="*", help="flat parameters, e.g. search.seeds=256")
+    args = parser.parse_args(argv)
+    defaults = EstimatorParams().flat()
+    params = EstimatorParams().with_flat({k: type(defaults[k])(v)
+                                          for k, v in (o.split("=", 1) for o in args.overrides)})
+    cache = REPO / "data" / "bench"
+    print("| part | condition | image | truth | refined (ok) | conf / expl / sig | coarse rank | seed / place near "
+          "| recall (best near) | best cand. | final (success) | loss |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    tally: dict[tuple[str, str], Counter] = {}
+    for name in args.parts:
+        step = step_file(PARTS[name], cache)
+        graph = AspectGraph.load(cached_graph_path(step, cache, 5.0))
+        mesh = tessellate(load_step(step))
+        model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
+        estimator = Estimator(graph, params)
+        for condition in args.conditions:
+            scene = load_scene(cache / f"scenes_v{SCENES_VERSION}_varied" / f"{name}_{condition}_100")
+            for entry in scene.entries[args.start:args.start + args.n]:
+                image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
+                frame = Frame.of(detect_edges(image, params.edges), scene.camera)
+                d = diagnose(estimator, frame, entry, model)
+                tally.setdefault((part_set(name), condition), Counter())[d["loss"]] += 1
+                s = d["parts"]
+                print(f"| {name} | {condition} | {entry.image.split('/')[-1]} | {d['truth']:.2f} | "
+                      f"{d['refined']:.2f} ({'y' if d['refined_ok'] else 'n'}) | "
+                      f"{s.confirmed:.2f} / {s.explained:.2f} / {s.significance:.2f} | {d['rank']} | "
+                      f"{'y' if d['seed_near'] else 'n'} / {'y' if d['place_near'] else 'n'} | "
+                      f"{'y' if d['recall'] else 'n'} ({d['near_score']:.2f}) | {d['best_candidate']:.2f} | "
+                      f"{d['final']:.2f} ({'y' if d['success'] else 'n'}) | {d['loss']} |", flush=True)
+        estimator.close()
+    print("\n| set | condition | images | " + " | ".join(LOSSES) + " |")
+    print("|---|---|---|" + "---|" * len(LOSSES))
+    for (s, c), counts in sorted(tally.items()):
+        print(f"| {s} | {c} | {sum(counts.values())} | " + " | ".join(str(counts[k]) for k in LOSSES) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
