@@ -8,7 +8,8 @@ Per image: the truth's score as it is and refined like a hypothesis, then polish
 (``truth`` / ``refined``, against ``pose.min_score`` and the chosen pose's score), the
 score's parts at the refined truth (confirmed / explained / significance), the rank among
 all coarse templates of the best near-truth one (``search_oracle``), whether a seed of
-the ``seeded`` stage and a place of the ``windows`` stage lie near the truth, whether a
+the ``seeded`` stage and a place of the ``windows`` stage lie near the truth (a rank beyond
+the kernel's ranked templates shows as -1, see ``search_oracle``), whether a
 refined candidate does (recall, bench/hypothesis_recall.py's definition), and the final
 pose. The loss, the first that applies:
 

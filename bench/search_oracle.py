@@ -5,6 +5,10 @@ diameter), its score against the best score, and whether a hypothesis handed to 
 refinement is near the truth.
 
     python bench/search_oracle.py GRAPH.brepose.npz SCENE_DIR [--first 12] [search.param=value ...]
+
+The kernel ranks only its best 8 x max(seeds, hypotheses, windows) templates (the others
+score -1 and have no position): a rank beyond that shows as -1 (no near template); pass
+``search.seeds=1024`` to rank nearly all of them.
 """
 from __future__ import annotations
 
