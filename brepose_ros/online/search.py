@@ -67,6 +67,9 @@ PROBE_STRIDE = 4
 #: more than this share is seen nearly edge-on: it fits any pair of straight image edges,
 #: so the search does not start from it (the refinement's view climb still reaches it)
 MAX_ONE_DIRECTION_SHARE = 0.8
+#: the kernel counts all points along a row of cells once more than 1 in this many cells of
+#: the row pass the probes (textured images): 1.5-2.8x faster there than cell by cell
+DENSE_ROW_SHARE = 8
 
 
 class TemplateLibrary:
@@ -202,7 +205,8 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
     Three passes: the first ``probes`` points (spread along the template) are counted on
     2 x 2 blocks of cells (``ResponseMaps.bounds``: a point hits a block if it hits any of
     its cells); on the rows of blocks where at least ``min_share`` of them hit, cell by
-    cell; only cells where at least ``min_share`` of them hit are counted in full.
+    cell; only cells where at least ``min_share`` of them hit are counted in full (along
+    the whole row where many do, ``DENSE_ROW_SHARE``).
 
     Only the ``keep`` best templates are ranked (``keep`` 0: all): a template that cannot
     beat the ``keep``-th best so far gets score -1, so its cells are given up early. The
@@ -212,6 +216,7 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
     h2, w2 = (h + 1) // 2, (w + 1) // 2
     acc = np.zeros((h, w), np.uint8)  # probes <= 255
     block_acc = np.zeros((h2, w2), np.uint8)
+    full = np.zeros(w, np.int32)
     counts = np.zeros(maps.shape[0], np.float32)
     need = max(1, int(np.ceil(min_share * probes)))
     heap = np.empty(max(keep, 1), np.float64)
@@ -247,6 +252,18 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
                 row = maps[bins[t, j], pad + dy[t, j] + y, pad + dx[t, j]:pad + dx[t, j] + w]
                 for x in range(w):
                     line[x] += row[x]
+            passing = 0
+            for x in range(w):
+                passing += line[x] >= need
+            # where many cells of a row go on, the rest of the points are counted along the row
+            # at once (vectorised adds) rather than cell by cell (scattered reads)
+            dense = passing * DENSE_ROW_SHARE > w
+            if dense:
+                full[:] = line
+                for j in range(probes, k):
+                    row = maps[bins[t, j], pad + dy[t, j] + y, pad + dx[t, j]:pad + dx[t, j] + w]
+                    for x in range(w):
+                        full[x] += row[x]
             for x in range(w):
                 if line[x] < need:
                     continue
@@ -254,16 +271,19 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
                 for b in range(maps.shape[0]):
                     if counts[b] > 0:
                         expected += counts[b] * chance[s, b, y, x]
-                # counted in chunks of ``probes`` points, given up as soon as even hits on
-                # every point left could not beat the best cell: the same best, far fewer reads
-                hits = np.int64(line[x])
-                j = probes
-                while j < k and hits + (k - j) - expected > best * k:
-                    for i in range(j, min(j + probes, k)):
-                        hits += maps[bins[t, i], pad + dy[t, i] + y, pad + dx[t, i] + x]
-                    j += probes
-                if j < k:
-                    continue
+                if dense:
+                    hits = np.int64(full[x])
+                else:
+                    # counted in chunks of ``probes`` points, given up as soon as even hits on
+                    # every point left could not beat the best: the same best, far fewer reads
+                    hits = np.int64(line[x])
+                    j = probes
+                    while j < k and hits + (k - j) - expected > best * k:
+                        for i in range(j, min(j + probes, k)):
+                            hits += maps[bins[t, i], pad + dy[t, i] + y, pad + dx[t, i] + x]
+                        j += probes
+                    if j < k:
+                        continue
                 score = (hits - expected) / k
                 if score > best:
                     best, by, bx = score, y, x
