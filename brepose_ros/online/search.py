@@ -27,8 +27,9 @@ Steps, per image:
    spiral) x in-plane angle x size, at every coarse cell; each template keeps its best
    position. A chunk of templates is one call, so threads share the templates
    (``workers.WorkerPool``). A first pass counts a quarter of the points (``PROBE_STRIDE``)
-   on blocks of 2 x 2 cells, then cell by cell on the rows of blocks where they hit often
-   enough (``min_coarse_share``); the rest of the points only at cells where those do, a
+   on blocks of 2 x 2 cells, then cell by cell between the first and the last block of a
+   row where they hit often enough (``min_coarse_share``); the rest of the points only at
+   cells where those do (along the span at once where many do), or else a
    quarter at a time, and no further once the cell cannot beat the template's best or the
    ``ranked_templates``-th best template so far (which the stages never reach down to).
 4. The best distinct templates become ``Hypothesis`` objects on the virtual camera through
@@ -67,8 +68,8 @@ PROBE_STRIDE = 4
 #: more than this share is seen nearly edge-on: it fits any pair of straight image edges,
 #: so the search does not start from it (the refinement's view climb still reaches it)
 MAX_ONE_DIRECTION_SHARE = 0.8
-#: the kernel counts all points along a row of cells once more than 1 in this many cells of
-#: the row pass the probes (textured images): 1.5-2.8x faster there than cell by cell
+#: the kernel counts all points along a span of cells once more than 1 in this many cells of
+#: the span pass the probes (textured images): 1.5-2.8x faster there than cell by cell
 DENSE_ROW_SHARE = 8
 
 
@@ -204,9 +205,9 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
 
     Three passes: the first ``probes`` points (spread along the template) are counted on
     2 x 2 blocks of cells (``ResponseMaps.bounds``: a point hits a block if it hits any of
-    its cells); on the rows of blocks where at least ``min_share`` of them hit, cell by
-    cell; only cells where at least ``min_share`` of them hit are counted in full (along
-    the whole row where many do, ``DENSE_ROW_SHARE``).
+    its cells); cell by cell from the first to the last block of a row where at least
+    ``min_share`` of them hit; only cells where at least ``min_share`` of them hit are
+    counted in full (along the whole span where many do, ``DENSE_ROW_SHARE``).
 
     Only the ``keep`` best templates are ranked (``keep`` 0: all): a template that cannot
     beat the ``keep``-th best so far gets score -1, so its cells are given up early. The
@@ -214,9 +215,9 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
     n_templates, k = dx.shape
     h, w = chance.shape[2], chance.shape[3]
     h2, w2 = (h + 1) // 2, (w + 1) // 2
-    acc = np.zeros((h, w), np.uint8)  # probes <= 255
-    block_acc = np.zeros((h2, w2), np.uint8)
-    full = np.zeros(w, np.int32)
+    block_acc = np.zeros((h2, w2), np.uint8)  # probes <= 255
+    probe_hits = np.zeros(w, np.uint8)  # of one row of cells
+    hit_counts = np.zeros(w, np.int32)
     counts = np.zeros(maps.shape[0], np.float32)
     need = max(1, int(np.ceil(min_share * probes)))
     heap = np.empty(max(keep, 1), np.float64)
@@ -238,45 +239,44 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
         best = heap[0] if 0 < keep == kept else -1.0
         by, bx = -1, -1
         for y in range(h):
-            if y % 2 == 0:  # a new row of blocks: is any of them worth counting cell by cell?
-                worth = False
+            if y % 2 == 0:  # a new row of blocks: the span of cells from its first to its last
+                lo, hi = w, 0  # block worth counting cell by cell (none: empty)
                 for x in range(w2):
                     if block_acc[y // 2, x] >= need:
-                        worth = True
-                        break
-            if not worth:
+                        lo, hi = min(lo, 2 * x), min(2 * x + 2, w)
+            if lo >= hi:
                 continue
-            line = acc[y]
+            line, whole = probe_hits[lo:hi], hit_counts[lo:hi]
             line[:] = 0
             for j in range(probes):
-                row = maps[bins[t, j], pad + dy[t, j] + y, pad + dx[t, j]:pad + dx[t, j] + w]
-                for x in range(w):
+                row = maps[bins[t, j], pad + dy[t, j] + y, pad + dx[t, j] + lo:pad + dx[t, j] + hi]
+                for x in range(hi - lo):
                     line[x] += row[x]
             passing = 0
-            for x in range(w):
+            for x in range(hi - lo):
                 passing += line[x] >= need
-            # where many cells of a row go on, the rest of the points are counted along the row
-            # at once (vectorised adds) rather than cell by cell (scattered reads)
-            dense = passing * DENSE_ROW_SHARE > w
+            # where many cells of a span go on, the rest of the points are counted along it at
+            # once (vectorised adds) rather than cell by cell (scattered reads)
+            dense = passing * DENSE_ROW_SHARE > hi - lo
             if dense:
-                full[:] = line
+                whole[:] = line
                 for j in range(probes, k):
-                    row = maps[bins[t, j], pad + dy[t, j] + y, pad + dx[t, j]:pad + dx[t, j] + w]
-                    for x in range(w):
-                        full[x] += row[x]
-            for x in range(w):
-                if line[x] < need:
+                    row = maps[bins[t, j], pad + dy[t, j] + y, pad + dx[t, j] + lo:pad + dx[t, j] + hi]
+                    for x in range(hi - lo):
+                        whole[x] += row[x]
+            for x in range(lo, hi):
+                if probe_hits[x] < need:
                     continue
                 expected = 0.0
                 for b in range(maps.shape[0]):
                     if counts[b] > 0:
                         expected += counts[b] * chance[s, b, y, x]
                 if dense:
-                    hits = np.int64(full[x])
+                    hits = np.int64(hit_counts[x])
                 else:
                     # counted in chunks of ``probes`` points, given up as soon as even hits on
                     # every point left could not beat the best: the same best, far fewer reads
-                    hits = np.int64(line[x])
+                    hits = np.int64(probe_hits[x])
                     j = probes
                     while j < k and hits + (k - j) - expected > best * k:
                         for i in range(j, min(j + probes, k)):
