@@ -7,6 +7,7 @@ creases and outlines (``mesh``, ``mesh_lines``); both removers have the same int
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -148,9 +149,7 @@ def _assemble(part, params, directions, rotations, views) -> AspectGraph:
     counts = [len(s) for s in seg_xy]
     seg_3d = np.concatenate([s for s, _ in views]).astype(np.float64)
     seg_kind = np.concatenate([k for _, k in views]).astype(np.uint8)
-    mesh = part if isinstance(part, MeshPart) else tessellate(part)
-    symmetries = detect_symmetries(seg_3d, seg_kind, float(part.diameter), (mesh.vertices, mesh.triangles))
-    return AspectGraph(
+    return with_symmetries(AspectGraph(
         step_sha256=part.sha256, params=params, model_center=np.asarray(part.center, dtype=np.float64),
         model_diameter=float(part.diameter), n_faces=int(part.n_faces),
         view_directions=np.asarray(directions, dtype=np.float64),
@@ -158,6 +157,15 @@ def _assemble(part, params, directions, rotations, views) -> AspectGraph:
         seg_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
         seg_xy=np.concatenate(seg_xy), xy_origin=np.array(xy_origin, dtype=np.float64),
         xy_scale=np.array(xy_scale, dtype=np.float64),
-        seg_3d=seg_3d, seg_kind=seg_kind, symmetry_rotations=symmetries.rotations,
-        symmetry_translations=symmetries.translations, symmetry_shares=symmetries.shares,
-        symmetry_axes=symmetries.axes, symmetry_axis_shares=symmetries.axis_shares)
+        seg_3d=seg_3d, seg_kind=seg_kind), part)
+
+
+def with_symmetries(graph: AspectGraph, part) -> AspectGraph:
+    """The graph with the symmetries found on its edge sections and the part's surface (a
+    loaded STEP part or a ``MeshPart``); also re-detects them in a graph compiled before the
+    detection changed (bench/graphs.py)."""
+    mesh = part if isinstance(part, MeshPart) else tessellate(part)
+    found = detect_symmetries(graph.seg_3d, graph.seg_kind, graph.model_diameter, (mesh.vertices, mesh.triangles))
+    return dataclasses.replace(graph, symmetry_rotations=found.rotations, symmetry_translations=found.translations,
+                               symmetry_shares=found.shares, symmetry_axes=found.axes,
+                               symmetry_axis_shares=found.axis_shares)

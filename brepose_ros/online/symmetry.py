@@ -3,17 +3,21 @@
 A near-symmetric part (``offline.symmetry``) looks almost the same in a pose and in its twin,
 the pose turned by the symmetry: the score of both is high, and the estimator may settle on
 either. Here each twin of the final pose (``AspectGraph.symmetric_poses``) is refined,
-climbed and polished on the image like the pose was, and the two are compared on the only edges that tell them
-apart: the projected model edges of each that lie farther than ``DISTINCT_REACH`` inlier
-distances from every projected edge of the other (a hole on one side, a chamfer, a tab).
-The share of those edges that the image confirms (``EdgeEvidence.supports``) is each pose's
-evidence; the common edges would only drown the small distinguishing feature.
+climbed and polished on the image like the pose was, and the two are compared on the only
+edges that tell them apart: the projected model edges of each that lie farther than
+``DISTINCT_REACH`` inlier distances from every projected edge of the other (a hole on one
+side, a chamfer, a tab). The share of those edges that like image edges confirm beyond
+chance, counted as the score counts it (the local density of like edges is what chance
+confirms; ``scoring.EdgeEvidence``), is each pose's evidence: the common edges would only
+drown the small distinguishing feature, and clutter where a feature would be must not
+confirm it.
 
 The pose with more evidence is kept, and the difference of the two shares is its *margin*
 (0 to 1): near 0 the image cannot decide (the feature is hidden, or absent from both), and
-the estimate says so (``Estimate.ambiguous``). A feature too small at this distance to
-leave distinguishing edges is judged by the difference of the whole scores, a small margin. Exact
-symmetries need no check: their twins are the same pose of the part.
+the estimate says so (``Estimate.ambiguous``). Where the feature is too small at this
+distance to leave ``MIN_DISTINCT_PIXELS`` of distinguishing edge, the difference of the
+whole scores chooses, and the margin is 0: a guess is no evidence. Exact symmetries need
+no check: their twins are the same pose of the part.
 """
 from __future__ import annotations
 
@@ -71,15 +75,17 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     # is its smallest gain over any other, and the pose with the largest margin wins
     poses = [best] + rivals
     gains = np.zeros((len(poses), len(poses)))  # gains[i, j]: how much more pose j shows than pose i
+    seen = np.ones((len(poses), len(poses)), bool)  # whether the image can tell poses i and j apart
     for i, j in zip(*np.triu_indices(len(poses), 1)):
-        gains[i, j] = twin_evidence(graph, poses[i], poses[j], frame, p)
-        gains[j, i] = -gains[i, j]
+        gains[i, j], seen[i, j] = twin_evidence(graph, poses[i], poses[j], frame, p)
+        gains[j, i], seen[j, i] = -gains[i, j], seen[i, j]
     np.fill_diagonal(gains, np.inf)
     margins = gains.min(axis=0)
     winner = int(np.argmax(margins))
     if margins[winner] <= margins[0] + MIN_GAIN:
         winner = 0  # a rival must beat the pose by more than noise
-    return poses[winner], float(max(margins[winner], 0.0))
+    # where the distinguishing feature shows too little, the whole scores chose: no margin
+    return poses[winner], float(max(margins[winner], 0.0)) if seen[:, winner].all() else 0.0
 
 
 def same_pose(a: Candidate, b: Candidate, diameter: float) -> bool:
@@ -88,20 +94,37 @@ def same_pose(a: Candidate, b: Candidate, diameter: float) -> bool:
             and float(np.linalg.norm(a.t - b.t)) < SAME_POSE_DIAMETERS * diameter)
 
 
-def twin_evidence(graph: AspectGraph, pose: Candidate, twin: Candidate, frame: Frame, p: PoseParams) -> float:
-    """The twin's share of its distinguishing edges that the image confirms minus the
-    pose's share of its own (module doc). When neither shows ``MIN_DISTINCT_PIXELS`` of
-    distinguishing edge (a small feature on a small image), the difference of their whole
-    scores, which the feature still moves a little."""
+def twin_evidence(graph: AspectGraph, pose: Candidate, twin: Candidate, frame: Frame,
+                  p: PoseParams) -> tuple[float, bool]:
+    """How much more the image shows of the twin than of the pose, and whether it can tell:
+    the twin's share of its distinguishing edges that the image confirms beyond chance minus
+    the pose's share of its own (``beyond_chance``). When neither shows ``MIN_DISTINCT_PIXELS``
+    of distinguishing edge (a small feature on a small image, or one seen edge-on), the image
+    cannot tell (False), and the difference of the whole scores, which the feature still
+    moves a little, is all there is to choose by."""
     drawn = [frame.camera.project_model(graph.seg_3d[graph.visible_segments(c.R, c.t)], c.R, c.t)
              for c in (pose, twin)]
     reach = DISTINCT_REACH * p.inlier_pixels
     pieces = [distinct_pieces(drawn[0], drawn[1], reach), distinct_pieces(drawn[1], drawn[0], reach)]
     if max(len(piece) for piece in pieces) * PIECE_PIXELS < MIN_DISTINCT_PIXELS:
-        return twin.score - pose.score
-    shares = [frame.evidence.supports(piece, np.array([0, len(piece)]), p.inlier_pixels)[0] if len(piece) else 0.0
-              for piece in pieces]
-    return float(shares[1] - shares[0])
+        return twin.score - pose.score, False
+    shares = [beyond_chance(frame, piece, p.inlier_pixels) for piece in pieces]
+    return float(shares[1] - shares[0]), True
+
+
+def beyond_chance(frame: Frame, pieces: np.ndarray, tolerance_px: float) -> float:
+    """The share of the pieces (N, 2, 2), pixels, that like image edges confirm beyond what
+    chance would confirm there, as the score counts it (``scoring.EdgeEvidence``): a piece's
+    chance is the local density of like edges, so a feature that lands on clutter or texture
+    is not confirmed by it. 0 for no pieces."""
+    if len(pieces) == 0:
+        return 0.0
+    h, w = frame.evidence.shape
+    centers = np.clip(np.rint(pieces.mean(axis=1)).astype(int) + 1, 0, [w + 1, h + 1])
+    bins = frame.evidence.orientation_bin(pieces)
+    confirmed = frame.evidence.near_like(tolerance_px)[bins, centers[:, 1], centers[:, 0]].sum()
+    expected = frame.evidence.chance(tolerance_px)[bins, centers[:, 1], centers[:, 0]].sum()
+    return float(max(confirmed - expected, 0.0) / max(len(pieces) - expected, 1e-12))
 
 
 def distinct_pieces(segments: np.ndarray, others: np.ndarray, reach: float) -> np.ndarray:
