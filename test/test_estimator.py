@@ -56,6 +56,7 @@ def test_clean_images_give_metric_poses(bracket, estimator, tmp_path):
         if r.errors and r.errors.success:
             assert r.estimate.score > 0.6 and 0.0 <= r.estimate.error_ratio <= 1.0
             assert len(r.estimate.model_segments) == len(r.estimate.image_segments) > 3
+            assert r.estimate.shares.score == pytest.approx(r.estimate.score)  # the parts behind the score
 
 
 @pytest.mark.slow

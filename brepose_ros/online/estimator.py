@@ -49,7 +49,7 @@ from .hypotheses import TetradHypotheses, best_per_region
 from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
-from .scoring import CLEAR_SCORE, edge_pairs
+from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_shares
 from .search import TemplateSearch
 from .symmetry import check_twins
 from .workers import WorkerPool, resolve_workers
@@ -91,6 +91,8 @@ class Estimate:
     symmetry_margin: float | None = None
     #: the margin is below ``pose.twin_margin``: the image cannot tell the pose from a twin
     ambiguous: bool = False
+    #: the three parts of the score at the final pose (``scoring.Shares``); None when nothing was scored
+    shares: Shares | None = None
 
 
 class Estimator:
@@ -175,12 +177,14 @@ class Estimator:
         timings["total"] = sum(timings.values())
         found = best.score >= p.pose.min_score
         pairs = edge_pairs(self.graph, best.R, best.t, frame, p)
+        shares = pose_shares(self.graph, best.R, best.t, frame, p.pose)
         return Estimate(found=found, R=best.R if found else None, t=best.t if found else None, score=best.score,
                         error_ratio=pairs.error_ratio, view_index=self.graph.nearest_view(best.R, best.t),
                         n_image_segments=len(edges.segments), n_matched=pairs.n_matched, n_nearest=pairs.n_nearest,
                         image_segments=pairs.image_segments, model_segments=pairs.model_segments, timings=timings,
                         matched_view=int(best.hypothesis.view), covariance=best.covariance if found else None,
-                        symmetry_margin=margin, ambiguous=margin is not None and margin < p.pose.twin_margin)
+                        symmetry_margin=margin, ambiguous=margin is not None and margin < p.pose.twin_margin,
+                        shares=shares)
 
     def candidates(self, frame: Frame, timings: dict | None = None) -> list[Candidate]:
         """The hypotheses of ``search.generators`` on one image's edges, each refined and

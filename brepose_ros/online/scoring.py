@@ -61,6 +61,13 @@ def pose_scores(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame"
     return scores
 
 
+def pose_shares(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame", p: PoseParams) -> "Shares":
+    """The ``Shares`` behind one pose's score (``pose_scores``, without its size floor): what
+    the estimate reports beside the score."""
+    model_px = frame.camera.project_model(graph.seg_3d[graph.visible_segments(R, t)], R, t)
+    return frame.evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels)
+
+
 @dataclass
 class EdgePairs:
     """The seed paper's pairs at a pose: the visible model edges of the nearest view matched
