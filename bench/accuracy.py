@@ -106,6 +106,12 @@ def scene(step: Path, folder: Path, images: int | range, seed: int, config: Scen
     return dataclasses.replace(grown, entries=grown.entries[images.start:])
 
 
+def scenes_folder(look: str, span: tuple[float, float]) -> str:
+    """The cache folder of scenes of one look and span (the default span keeps its old name)."""
+    folder = f"scenes_v{SCENES_VERSION}_{look}"
+    return folder if span == SPAN else f"{folder}_span{span[0]:g}-{span[1]:g}"
+
+
 def distractor_meshes(cache: Path) -> list:
     """The meshes of the DISTRACTORS found (occluders and clutter of the scenes)."""
     steps = [step_file(source, cache) for source in DISTRACTORS]
@@ -186,6 +192,9 @@ def main(argv=None) -> int:
     parser.add_argument("--look", default="varied", choices=LOOKS, help="scene look (default varied)")
     parser.add_argument("--step-deg", type=float, default=5.0, help="aspect graph view spacing")
     parser.add_argument("--seed", type=int, default=100)
+    parser.add_argument("--span", type=float, nargs=2, default=SPAN, metavar=("LOW", "HIGH"),
+                        help=f"the part's projected size, share of the image's smaller side (default {SPAN[0]:g} "
+                             f"{SPAN[1]:g}); other spans get scene folders of their own")
     parser.add_argument("--start", type=int, default=0,
                         help="first image index: --start 12 --n 12 adds images 12-23 to a run of --n 12")
     parser.add_argument("--out", type=Path, help="results JSON (default data/bench/results/accuracy_LABEL.json)")
@@ -212,7 +221,7 @@ def main(argv=None) -> int:
            "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
            "command": " ".join(["python", "bench/accuracy.py", *(argv if argv is not None else sys.argv[1:])]),
-           "paper_only": args.paper_only, "n": args.n, "start": args.start, "look": args.look, "seed": args.seed, "step_deg": args.step_deg, "span": SPAN,
+           "paper_only": args.paper_only, "n": args.n, "start": args.start, "look": args.look, "seed": args.seed, "step_deg": args.step_deg, "span": tuple(args.span),
            "tuning": list(TUNING), "params": params.to_dict(), "rows": []}
     rows = run["rows"]
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -225,8 +234,8 @@ def main(argv=None) -> int:
         model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
         for condition in args.conditions:
             progress.set_postfix_str(f"{name}: {condition}")
-            config = SceneConfig(span=SPAN, look=args.look, **CONDITIONS[condition])
-            folder = cache / f"scenes_v{SCENES_VERSION}_{args.look}" / f"{name}_{condition}_{args.seed}"
+            config = SceneConfig(span=tuple(args.span), look=args.look, **CONDITIONS[condition])
+            folder = cache / scenes_folder(args.look, tuple(args.span)) / f"{name}_{condition}_{args.seed}"
             images = range(args.start, args.start + args.n)
             results = evaluate_scene(scene(step, folder, images, args.seed, config, distractors),
                                      estimator, model, on_image=lambda *_: progress.update(),

@@ -29,7 +29,8 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, SCENES_VERSION, SPAN, distractor_meshes, part_set, scene, step_file  # noqa: E402
+from bench.accuracy import (CONDITIONS, PARTS, SPAN, distractor_meshes, part_set, scene, scenes_folder,  # noqa: E402
+                            step_file)
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors, symmetric_truth  # noqa: E402
@@ -94,6 +95,8 @@ def main(argv=None) -> int:
     parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "base_attachment"], choices=list(PARTS))
     parser.add_argument("--conditions", nargs="*", default=["clean", "occl30+clutter"], choices=list(CONDITIONS))
     parser.add_argument("--variant", nargs="*", default=["tetrad", "search", "both"])
+    parser.add_argument("--span", type=float, nargs=2, default=SPAN, metavar=("LOW", "HIGH"),
+                        help="the part's projected size, share of the image's smaller side (bench/accuracy.py's)")
     parser.add_argument("--verbose", action="store_true", help="a line per image")
     args = parser.parse_args(argv)
     variants = [variant_params(spec) for spec in args.variant]
@@ -110,12 +113,12 @@ def main(argv=None) -> int:
         model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
         estimators = [(label, Estimator(graph, params)) for label, params in variants]
         for condition in args.conditions:
-            folder = cache / f"scenes_v{SCENES_VERSION}_varied" / f"{name}_{condition}_100"
+            folder = cache / scenes_folder("varied", tuple(args.span)) / f"{name}_{condition}_100"
             images = range(args.start, args.start + args.n)
             cached_count = len(load_scene(folder).entries) if (folder / "gt.json").exists() else 0
             if cached_count < images.stop and distractors is None:  # the scene must be grown
                 distractors = distractor_meshes(cache)
-            config = SceneConfig(span=SPAN, look="varied", **CONDITIONS[condition])
+            config = SceneConfig(span=tuple(args.span), look="varied", **CONDITIONS[condition])
             cached = scene(step, folder, images, 100, config, distractors)
             results = {label: [] for label, _ in estimators}
             for entry in cached.entries:
