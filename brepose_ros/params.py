@@ -64,7 +64,7 @@ class EdgeParams(Ranged):
         "HoughLinesP accumulator threshold as a share of the minimum line length", 0.5, 0.01, 10.0)
     raw_min_length_fraction: float = doc(
         "shortest raw segment before merging (HoughLinesP minLineLength; shorter LSD pieces are dropped), "
-        "share of the image diagonal", 0.015, 0.0, 1.0)
+        "share of the image diagonal", 0.0075, 0.0, 1.0)
     hough_max_gap: float = doc("largest gap HoughLinesP bridges inside one segment, pixels", 3.0, 0.0, 100.0)
     merge_angle_deg: float = doc("pieces of one edge differ in direction by at most this, degrees", 2.0, 0.1, 45.0)
     merge_distance: float = doc(
@@ -72,7 +72,9 @@ class EdgeParams(Ranged):
     merge_gap: float = doc("largest gap along the line between pieces of one edge, pixels", 15.0, 0.0, 500.0)
     refine: bool = doc("refit each merged Hough segment to the Canny pixels along it and extend it over them", True)
     min_length_fraction: float = doc(
-        "merged segments shorter than this share of the image diagonal are dropped", 0.03, 0.0, 1.0)
+        "merged segments shorter than this share of the image diagonal are dropped; 0.015 (12 px at 640x480) keeps "
+        "the edges of a part 50-150 px across, half of whose edge length lies in shorter edges "
+        "(docs/results/real_lmo.md)", 0.015, 0.0, 1.0)
     max_segments: int = doc("at most this many merged segments are kept, longest first", 200, 1, 2000)
 
     def __post_init__(self):
@@ -111,7 +113,7 @@ class MatchParams(Ranged):
     cluster_gap_fraction: float = doc(
         "segments whose end points lie closer than this share of the image diagonal chain into one cluster "
         "(a candidate region); as long as the shortest segment kept (edges.min_length_fraction), so that the "
-        "edges of one part meeting at its corners chain, while objects apart by more stay apart", 0.03, 0.0, 0.5)
+        "edges of one part meeting at its corners chain, while objects apart by more stay apart", 0.015, 0.0, 0.5)
     hypotheses: int = doc(
         "best-covered (view, rotation) hypotheses per region turned into poses and verified", 6, 1, 64)
     workers: int = doc(
