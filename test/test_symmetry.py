@@ -2,6 +2,7 @@
 graph file, decided at run time between twins, and equal in the evaluation."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import zipfile
 
@@ -280,3 +281,14 @@ def test_the_notched_plate_is_reported_ambiguous_when_its_notch_is_hidden(plate_
     image, camera, R, t = plate_image(step, hide_features=True)
     kept, margin, ambiguous = twin_check(graph, image, camera, R, t)
     assert ambiguous and margin < 0.1
+
+
+def test_an_ambiguous_pose_says_so_in_the_overlay_caption():
+    from brepose_ros.evaluation.overlay import caption
+    from brepose_ros.online.estimator import Estimate
+
+    estimate = Estimate(found=True, R=np.eye(3), t=np.array([0.0, 0.0, 0.3]), score=0.9, error_ratio=0.1,
+                        view_index=0, n_image_segments=10, n_matched=5, n_nearest=4, symmetry_margin=0.05,
+                        ambiguous=True)
+    assert "ambiguous (twin margin 0.05)" in caption(estimate)
+    assert "ambiguous" not in caption(dataclasses.replace(estimate, symmetry_margin=0.6, ambiguous=False))

@@ -48,6 +48,9 @@ def main(argv=None) -> int:
             estimate = estimator.estimate(image, camera)
             predictions.append(prediction_entry(path, estimate))
             state = f"score {estimate.score:.2f}" if estimate.found else f"not found (score {estimate.score:.2f})"
+            if estimate.found and estimate.ambiguous:
+                state += f", ambiguous: the image cannot tell it from a symmetric twin (margin " \
+                         f"{estimate.symmetry_margin:.2f})"
             print(f"{path}: {state}, error ratio {estimate.error_ratio:.2f}, "
                   f"{estimate.timings.get('total', 0) * 1000:.0f} ms", file=sys.stderr)
             if args.overlays:

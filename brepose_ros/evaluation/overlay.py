@@ -54,6 +54,8 @@ def caption(estimate: Estimate, label: str = "") -> str:
     text = (f"{state}  score {estimate.score:.2f}  error ratio {estimate.error_ratio:.2f}"
             f"  view {estimate.view_index}  edges {estimate.n_image_segments}"
             f"  matched {estimate.n_matched}")
+    if estimate.ambiguous:  # the image cannot tell the pose from a symmetric twin
+        text += f"  ambiguous (twin margin {estimate.symmetry_margin:.2f})"
     return f"{label}: {text}" if label else text
 
 
