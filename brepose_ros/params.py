@@ -182,7 +182,7 @@ class SearchParams(Ranged):
     size_step: float = doc("ratio between successive part diameters searched", 1.25, 1.01, 2.0)
     min_coarse_share: float = doc(
         "a position is scored only if this share of a template's points hit an edge", 0.4, 0.0, 1.0)
-    hypotheses: int = doc("best distinct templates handed to the refinement", 32, 1, 256)
+    hypotheses: int = doc("best distinct templates handed to the refinement", 48, 1, 256)
     distinct_fraction: float = doc(
         "templates of one view and about one angle closer than this share of their size are one", 0.2, 0.0, 1.0)
     enough_score: float = doc(
@@ -190,12 +190,10 @@ class SearchParams(Ranged):
         "this (0.85: on the tuning parts' bench scenes no wrong pose of the tetrads scored it after the climb "
         "where a later generator found the right one)", 0.85, 0.0, 1.01)
     seeds: int = doc("'seeded': best distinct templates matched by Kuhn-Munkres, the best-covered "
-                     "'hypotheses' of them go on to the refinement (64 seeds, 32 refined and 4 windows "
-                     "reached the truth as often as 128, 48 and 6 in 0.85x the time, docs/results/speed.md)",
-                     64, 1, 1024)
+                     "'hypotheses' of them go on to the refinement", 128, 1, 1024)
     seed_window: float = doc("'seeded', 'windows': image segments within this many part radii of a seed's "
                              "centre are matched to its view", 1.2, 0.1, 4.0)
-    windows: int = doc("'windows': best distinct places of the search matched as regions", 4, 1, 64)
+    windows: int = doc("'windows': best distinct places of the search matched as regions", 6, 1, 64)
 
     def __post_init__(self):
         stages = self.stages

@@ -433,7 +433,7 @@ class CoarseResult:
 
 def ranked_templates(p: SearchParams) -> int:
     """How many of the best coarse templates the kernel ranks exactly: 8 times as many as the
-    most a stage takes (128 distinct templates lay within the best 157-332 of
+    most a stage takes (the seeds' 128 distinct templates lay within the best 157-332 of
     10,080 on the bench images, docs/DECISIONS.md); the rest are given up early."""
     return 8 * max(p.seeds, p.hypotheses, p.windows)
 
