@@ -1,18 +1,21 @@
-"""How many wrong poses are twins of the truth, and what the twin check saw there.
+"""How many wrong poses are twins of the truth, with the twin check on, off or both.
 
     python bench/twins.py [--n 12] [--parts notched_plate flange shaft ...] [--conditions clean clutter]
-                          [--label NAME] [--twin-check on|off]
+                          [--label NAME] [--twin-check on|off ...] [--look varied|plain] [--span LOW HIGH]
 
-For each part (default: the bench parts whose graphs hold near symmetries) and condition,
-the estimator with default parameters on bench/accuracy.py's cached scenes. Every reported
+For each part (default: the bench parts whose graphs hold near symmetries), condition and
+``--twin-check`` setting (``--twin-check off on`` compares the two; each setting estimates
+the scene in turn, and only the check's own time is printed, zero when it is off), the
+estimator with default parameters on bench/accuracy.py's cached scenes (of ``--look`` and
+``--span``; ``--look plain --span 0.25 0.6`` is ``SceneConfig()``'s). Every reported
 pose (score >= ``pose.min_score``) that fails CONVENTIONS.md's success (up to the part's
 exact symmetries, which make poses equivalent) is a *twin* when one
 of the part's near symmetries applied to the truth (a stored turn, or any turn about a near
 continuous axis) lies within the success bounds of it (rotation < 5 degrees, translation
 < 5 % of the diameter): the image nearly shows the truth there. Per row: reported poses,
-right ones, wrong ones, wrong ones that are twins, and the twin check's margin and ambiguity
-on the right and the wrong poses. Per-image records go to
-data/bench/results/twins_LABEL.json.
+right ones, wrong ones, wrong ones that are twins, and the twin check's ambiguity on the right
+and the wrong poses; a column names the part's symmetries as compiled (exact / near counts,
+and the near turns' shares). Per-image records go to data/bench/results/twins_LABEL.json.
 """
 from __future__ import annotations
 
@@ -27,7 +30,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import CONDITIONS, PARTS, SCENES_VERSION, SPAN, distractor_meshes, scene, step_file  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, SPAN, distractor_meshes, scene, scenes_folder, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene, translation_error_mm  # noqa: E402
@@ -35,7 +38,7 @@ from brepose_ros.geometry import quaternion_from_matrix, rotation_about, rotatio
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
-from brepose_ros.synthetic.scenes import SceneConfig  # noqa: E402
+from brepose_ros.synthetic.scenes import LOOKS, SceneConfig  # noqa: E402
 
 SYMMETRIC_PARTS = ("notched_plate", "flange", "shaft", "mounting_plate", "motor1_holder")
 
@@ -63,6 +66,14 @@ def twin_of_truth(R_est, t_est, R_gt, t_gt, graph: AspectGraph) -> str | None:
     return None
 
 
+def describe(graph: AspectGraph) -> str:
+    """The graph's symmetries: 'exact / near' counts (continuous axes among the exact ones),
+    then the near turns' shares."""
+    exact = int(graph.exact_symmetries.sum()) + int(graph.exact_axes.sum())
+    near = ", ".join(f"{s:.2f}" for s in graph.symmetry_shares[~graph.exact_symmetries])
+    return f"{exact} / {int((~graph.exact_symmetries).sum())}" + (f": {near}" if near else "")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--n", type=int, default=12)
@@ -70,62 +81,74 @@ def main(argv=None) -> int:
     parser.add_argument("--conditions", nargs="*", default=["clean", "clutter"], choices=list(CONDITIONS))
     parser.add_argument("--step-deg", type=float, default=5.0)
     parser.add_argument("--seed", type=int, default=100)
-    parser.add_argument("--twin-check", choices=("on", "off"), default="on")
+    parser.add_argument("--twin-check", nargs="+", choices=("on", "off"), default=["on"])
+    parser.add_argument("--look", default="varied", choices=LOOKS)
+    parser.add_argument("--span", type=float, nargs=2, default=SPAN, metavar=("LOW", "HIGH"))
     parser.add_argument("--label", default="default")
     args = parser.parse_args(argv)
     cache = REPO / "data" / "bench"
     base = EstimatorParams()
-    params = dataclasses.replace(base, pose=dataclasses.replace(base.pose, twin_check=args.twin_check == "on"))
+    settings = {check: dataclasses.replace(base, pose=dataclasses.replace(base.pose, twin_check=check == "on"))
+                for check in args.twin_check}
     distractors = distractor_meshes(cache)
+    out = cache / "results" / f"twins_{args.label}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
     records, rows = [], []
     for name in args.parts:
         step = step_file(PARTS[name], cache)
         graph = AspectGraph.load(cached_graph_path(step, cache, args.step_deg))
         mesh = tessellate(load_step(step))
         model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
-        estimator = Estimator(graph, params)
+        estimators = {check: Estimator(graph, params) for check, params in settings.items()}
         for condition in args.conditions:
-            config = SceneConfig(span=SPAN, look="varied", **CONDITIONS[condition])
-            folder = cache / f"scenes_v{SCENES_VERSION}_varied" / f"{name}_{condition}_{args.seed}"
+            config = SceneConfig(span=tuple(args.span), look=args.look, **CONDITIONS[condition])
+            folder = cache / scenes_folder(args.look, tuple(args.span)) / f"{name}_{condition}_{args.seed}"
             loaded = scene(step, folder, args.n, args.seed, config, distractors)
-            row = dict(part=name, condition=condition, images=len(loaded.entries), found=0, right=0, wrong=0,
-                       twins=0, kinds=[], margins_right=[], margins_wrong=[], ambiguous_right=0,
-                       ambiguous_wrong=0, ms=[])
-            for entry, result in zip(loaded.entries, evaluate_scene(loaded, estimator, model)):
-                estimate, errors = result.estimate, result.errors
-                row["ms"].append(1000 * estimate.timings.get("symmetry", 0.0))
-                record = dict(part=name, condition=condition, image=result.image, found=estimate.found,
-                              score=float(estimate.score), margin=estimate.symmetry_margin,
-                              ambiguous=bool(estimate.ambiguous))
-                if errors is not None:
-                    right = errors.success_sym  # a pose turned by an exact symmetry is the same pose
-                    twin = None if right else twin_of_truth(estimate.R, estimate.t, entry.R, entry.t, graph)
-                    record.update(rotation_deg=errors.rotation_deg, right=right, twin=twin,
-                                  R=estimate.R.ravel().tolist(), t=estimate.t.tolist())
-                    row["found"] += 1
-                    row["right" if right else "wrong"] += 1
-                    row["margins_right" if right else "margins_wrong"].append(estimate.symmetry_margin)
-                    row["ambiguous_right" if right else "ambiguous_wrong"] += estimate.ambiguous
-                    if twin:
-                        row["twins"] += 1
-                        row["kinds"].append(twin)
-                records.append(record)
-                print(f"  {name} {condition} {result.image}: {json.dumps(record)}", file=sys.stderr)
-            rows.append(row)
-            out = cache / "results" / f"twins_{args.label}.json"
-            out.parent.mkdir(parents=True, exist_ok=True)
+            for check, estimator in estimators.items():
+                rows.append(count_twins(loaded, estimator, model, name, condition, check, records))
             out.write_text(json.dumps(records, indent=1) + "\n")
-        estimator.close()
-    print(f"\ntwin check {args.twin_check}, {args.n} images per row, graphs at {args.step_deg:g} deg\n")
-    print("| part | condition | reported | right | wrong | of them twins (which) | ambiguous right / wrong | "
-          "twin check ms (median) |")
-    print("|---|---|---|---|---|---|---|---|")
+        for estimator in estimators.values():
+            estimator.close()
+    print(f"\n{args.n} images per row, {args.look} look, span {args.span[0]:g}-{args.span[1]:g}, "
+          f"graphs at {args.step_deg:g} deg\n")
+    print("| part | symmetries (exact / near: shares) | condition | twin check | reported | right | wrong | "
+          "of them twins (which) | ambiguous right / wrong | twin check ms (median) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         kinds = ", ".join(r["kinds"])
-        print(f"| {r['part']} | {r['condition']} | {r['found']} | {r['right']} | {r['wrong']} | "
-              f"{r['twins']}{f' ({kinds})' if kinds else ''} | {r['ambiguous_right']} / {r['ambiguous_wrong']} | "
-              f"{np.median(r['ms']):.0f} |")
+        print(f"| {r['part']} | {r['symmetries']} | {r['condition']} | {r['twin_check']} | {r['found']} | "
+              f"{r['right']} | {r['wrong']} | {r['twins']}{f' ({kinds})' if kinds else ''} | "
+              f"{r['ambiguous_right']} / {r['ambiguous_wrong']} | {np.median(r['ms']):.0f} |")
     return 0
+
+
+def count_twins(loaded, estimator: Estimator, model: ModelPoints, name: str, condition: str, check: str,
+                records: list) -> dict:
+    """One table row: the poses of scene ``loaded`` sorted into right, wrong and twins of the
+    truth; each image's record is appended to ``records``."""
+    graph = estimator.graph
+    row = dict(part=name, symmetries=describe(graph), condition=condition, twin_check=check, found=0, right=0,
+               wrong=0, twins=0, kinds=[], ambiguous_right=0, ambiguous_wrong=0, ms=[])
+    for entry, result in zip(loaded.entries, evaluate_scene(loaded, estimator, model)):
+        estimate, errors = result.estimate, result.errors
+        row["ms"].append(1000 * estimate.timings.get("symmetry", 0.0))
+        record = dict(part=name, condition=condition, twin_check=check, image=result.image, found=estimate.found,
+                      score=float(estimate.score), margin=estimate.symmetry_margin,
+                      ambiguous=bool(estimate.ambiguous))
+        if errors is not None:
+            right = errors.success_sym  # a pose turned by an exact symmetry is the same pose
+            twin = None if right else twin_of_truth(estimate.R, estimate.t, entry.R, entry.t, graph)
+            record.update(rotation_deg=errors.rotation_deg, right=right, twin=twin,
+                          R=estimate.R.ravel().tolist(), t=estimate.t.tolist())
+            row["found"] += 1
+            row["right" if right else "wrong"] += 1
+            row["ambiguous_right" if right else "ambiguous_wrong"] += estimate.ambiguous
+            if twin:
+                row["twins"] += 1
+                row["kinds"].append(twin)
+        records.append(record)
+        print(f"  {name} {condition} twin check {check} {result.image}: {json.dumps(record)}", file=sys.stderr)
+    return row
 
 
 if __name__ == "__main__":
