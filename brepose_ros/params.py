@@ -65,6 +65,10 @@ class EdgeParams(Ranged):
     raw_min_length_fraction: float = doc(
         "shortest raw segment before merging (HoughLinesP minLineLength; shorter LSD pieces are dropped), "
         "share of the image diagonal", 0.0075, 0.0, 1.0)
+    refine_raw_min_length_fraction: float = doc(
+        "raw_min_length_fraction of the segments the pose refinement pairs with (a Hough pass of their own): "
+        "the short pieces of curved outlines that help small parts' search pull near poses' depth off "
+        "(docs/results/real_lmo.md)", 0.015, 0.0, 1.0)
     hough_max_gap: float = doc("largest gap HoughLinesP bridges inside one segment, pixels", 3.0, 0.0, 100.0)
     merge_angle_deg: float = doc("pieces of one edge differ in direction by at most this, degrees", 2.0, 0.1, 45.0)
     merge_distance: float = doc(

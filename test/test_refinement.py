@@ -79,7 +79,7 @@ def test_refine_rounds_associate_and_refine_as_the_plain_steps_and_alone_as_in_a
     graph.view_directions = -(R_true.T @ t_true / np.linalg.norm(t_true))[None]
     graph.seg_3d = model
     refiner = refinement.PoseRefiner(graph)
-    frame = SimpleNamespace(segments_n=image, camera=SimpleNamespace(focal=600.0))
+    frame = SimpleNamespace(refine_segments_n=image, camera=SimpleNamespace(focal=600.0))
     p = PoseParams()
     R0 = np.array([cv2.Rodrigues(rng.normal(0, 0.03, 3))[0] @ R_true for _ in range(3)])
     t0 = t_true + rng.normal(0, 0.005, (3, 3))
@@ -205,7 +205,8 @@ def test_a_near_start_is_kept_when_the_lines_beside_it_belong_to_a_neighbour():
         cv2.line(image, tuple(np.rint(a + 10.0 * outward).astype(int)),
                  tuple(np.rint(a + 0.3 * (b - a) + 10.0 * outward).astype(int)), 250, 1)
     frame = dataclasses.replace(Frame.of(detect_edges(image), camera), segments_px=np.array(lines),
-                                segments_n=camera.undistort(np.array(lines)))
+                                segments_n=camera.undistort(np.array(lines)),
+                                refine_segments_n=camera.undistort(np.array(lines)))
     graph = one_view_graph(np.zeros((len(seg_3d), 2, 2)), seg_3d, diameter=0.07)
     refiner, p = refinement.PoseRefiner(graph), PoseParams()
     rng = np.random.default_rng(0)

@@ -26,7 +26,8 @@ INNER = np.array([[[30.0, 10.0], [30.0, 60.0]]])
 def frame_of(segments_px):
     """A frame of these segments, without edge pixels."""
     empty = np.zeros((CAMERA.height, CAMERA.width), np.float32)
-    return Frame(segments_px=segments_px, segments_n=CAMERA.undistort(segments_px), camera=CAMERA,
+    return Frame(segments_px=segments_px, segments_n=CAMERA.undistort(segments_px),
+                 refine_segments_n=CAMERA.undistort(segments_px), camera=CAMERA,
                  evidence=EdgeEvidence(empty.astype(np.uint8), empty, empty), edge_points_n=np.zeros((0, 2)))
 
 

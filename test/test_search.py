@@ -176,7 +176,8 @@ def test_the_search_hypothesis_names_the_drawn_view_angle_size_and_position():
     image.draw(np.array([[[0, 300], [639, 300]], [[0, 360], [639, 360]]], float))
     image.draw(np.random.default_rng(1).uniform(0, [640, 480], size=(10, 2, 2)))
     evidence = image.evidence()
-    frame = Frame(segments_px=np.zeros((0, 2, 2)), segments_n=np.zeros((0, 2, 2)), camera=camera,
+    frame = Frame(segments_px=np.zeros((0, 2, 2)), segments_n=np.zeros((0, 2, 2)),
+                  refine_segments_n=np.zeros((0, 2, 2)), camera=camera,
                   evidence=evidence, edge_points_n=camera.undistort(evidence.pixels))
     finder = search.TemplateSearch(one_view_graph(part), SearchParams())
     best = finder.hypotheses(frame, SearchParams())[0]

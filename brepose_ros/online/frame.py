@@ -8,7 +8,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..params import EdgeParams
-from .image_edges import ImageEdges, edge_pixels, line_segments
+from .image_edges import ImageEdges, edge_pixels, line_segments, refinement_params
 from .scoring import EdgeEvidence
 from .workers import SERIAL, WorkerPool
 
@@ -20,6 +20,7 @@ class Frame:
 
     segments_px: np.ndarray  # (N, 2, 2)
     segments_n: np.ndarray  # (N, 2, 2) normalised camera coordinates
+    refine_segments_n: np.ndarray  # (M, 2, 2) the pose refinement's segments, normalised
     camera: Camera
     evidence: EdgeEvidence
     edge_points_n: np.ndarray  # evidence.pixels in normalised camera coordinates
@@ -35,14 +36,16 @@ class Frame:
         refit) and the evidence for scoring, which both start from the edge pixels alone,
         run on two of the ``pool``'s threads."""
         pixels = edge_pixels(image, params)
-        segments, evidence = pool.map(lambda job: job(), [lambda: line_segments(pixels, params),
-                                                          lambda: _evidence(pixels)])
-        edges = dataclasses.replace(pixels, segments=segments)
+        segments, refine_segments, evidence = pool.map(lambda job: job(), [
+            lambda: line_segments(pixels, params), lambda: line_segments(pixels, refinement_params(params)),
+            lambda: _evidence(pixels)])
+        edges = dataclasses.replace(pixels, segments=segments, refine_segments=refine_segments)
         return edges, cls._with(edges, camera, evidence)
 
     @classmethod
     def _with(cls, edges: ImageEdges, camera: Camera, evidence: EdgeEvidence) -> "Frame":
-        return cls(segments_px=edges.segments, segments_n=camera.undistort(edges.segments), camera=camera,
+        return cls(segments_px=edges.segments, segments_n=camera.undistort(edges.segments),
+                   refine_segments_n=camera.undistort(edges.refine_segments), camera=camera,
                    evidence=evidence, edge_points_n=camera.undistort(evidence.pixels))
 
 

@@ -42,14 +42,16 @@ _DERIVATIVE_SCALE = 16.0
 @dataclass
 class ImageEdges:
     """What the edge stage found in one image: the gray image, the gradient Canny ran on,
-    Canny's edge pixels and the merged line segments (N, 2, 2), longest first. Later stages
-    score poses on the pixels and their gradient directions."""
+    Canny's edge pixels and the merged line segments (N, 2, 2), longest first, those of the
+    search and those of the pose refinement (``refinement_params``). Later stages score
+    poses on the pixels and their gradient directions."""
 
     gray: np.ndarray
     gradient_x: np.ndarray  # float32 Sobel derivatives of the blurred gray image
     gradient_y: np.ndarray
     edge_map: np.ndarray
     segments: np.ndarray
+    refine_segments: np.ndarray
 
 
 def detect_edges(image: np.ndarray, params: EdgeParams = EdgeParams()) -> ImageEdges:
@@ -60,7 +62,13 @@ def detect_edges(image: np.ndarray, params: EdgeParams = EdgeParams()) -> ImageE
     ValueError. A constant image has no edges and gives (0, 2, 2) segments.
     """
     pixels = edge_pixels(image, params)
-    return dataclasses.replace(pixels, segments=line_segments(pixels, params))
+    return dataclasses.replace(pixels, segments=line_segments(pixels, params),
+                               refine_segments=line_segments(pixels, refinement_params(params)))
+
+
+def refinement_params(params: EdgeParams) -> EdgeParams:
+    """The edge parameters of the segments the pose refinement pairs with: longer raw pieces."""
+    return dataclasses.replace(params, raw_min_length_fraction=params.refine_raw_min_length_fraction)
 
 
 def edge_pixels(image: np.ndarray, params: EdgeParams) -> ImageEdges:
@@ -69,9 +77,11 @@ def edge_pixels(image: np.ndarray, params: EdgeParams) -> ImageEdges:
     gray = to_gray(image)
     if gray.max() == gray.min():
         flat = np.zeros(gray.shape, np.float32)
-        return ImageEdges(gray, flat, flat, np.zeros(gray.shape, np.uint8), np.zeros((0, 2, 2)))
+        return ImageEdges(gray, flat, flat, np.zeros(gray.shape, np.uint8), np.zeros((0, 2, 2)),
+                          np.zeros((0, 2, 2)))
     dx, dy = colour_gradients(image, params) if params.colour and _is_colour(image) else gradients(gray, params)
-    return ImageEdges(gray, dx, dy, canny_from_gradients(dx, dy, params), np.zeros((0, 2, 2)))
+    return ImageEdges(gray, dx, dy, canny_from_gradients(dx, dy, params), np.zeros((0, 2, 2)),
+                      np.zeros((0, 2, 2)))
 
 
 def line_segments(pixels: ImageEdges, params: EdgeParams) -> np.ndarray:

@@ -294,14 +294,15 @@ class PoseRefiner:
         """Re-associate the visible model edges with image lines and refine, one round per
         tolerance of ``rounds`` (units of ``pose.inlier_pixels``), for B poses R (B, 3, 3),
         t (B, 3); returns new arrays. Per pose and round: the graph view nearest to the
-        pose, its segments paired with their nearest image lines (``nearest_lines``) and
+        pose, its segments paired with their nearest image lines (``nearest_lines``; the
+        frame's ``refine_segments_n``: longer raw pieces than the search's) and
         the Gauss-Newton steps of ``refine_poses``, all in one compiled call
         (``kernels.refine_rounds_kernel``, GIL released): each pose refines alone, to the
         same bits alone or in a batch. A pose behind the camera is left where it is."""
         g = self.graph
         R, t = np.array(R, dtype=float), np.array(t, dtype=float)
-        if len(frame.segments_n):
-            image = np.ascontiguousarray(frame.segments_n, dtype=float)
+        if len(frame.refine_segments_n):
+            image = np.ascontiguousarray(frame.refine_segments_n, dtype=float)
             refine_rounds_kernel(R, t, g.view_directions, g.model_center, g.seg_offsets, g.seg_3d, image,
                                  line_equations(image), p.inlier_pixels / frame.camera.focal,
                                  np.asarray(rounds, dtype=float), ROUGH_ITERATIONS, FINE_ITERATIONS,
