@@ -135,8 +135,9 @@ def git(*args) -> str:
 
 
 def rates(images: list[dict]) -> dict:
-    """Success, ADD-S < 0.1 d and er < 0.01 rates, median errors (of found poses) and median
-    time, from per-image records (so rows of split runs can be pooled)."""
+    """Success (plain, and up to the part's exact symmetries: the flange turned by its bolt
+    circle is the same pose), ADD-S < 0.1 d and er < 0.01 rates, median errors (of found
+    poses) and median time, from per-image records (so rows of split runs can be pooled)."""
     n = max(len(images), 1)
     found = [i for i in images if i["found"]]
 
@@ -144,6 +145,8 @@ def rates(images: list[dict]) -> dict:
         return float(np.median([i[key] for i in found])) if found else float("nan")
 
     return {"n": len(images), "success": sum(i.get("success", False) for i in found) / n,
+            # records written before success_sym existed had no symmetric parts
+            "success_sym": sum(i.get("success_sym", i.get("success", False)) for i in found) / n,
             "add_s": sum(i["add_s"] < 0.1 for i in found) / n,
             "er": sum(i["error_rate"] < 0.01 for i in found) / n,
             "rot": median("rotation_deg"), "trans": median("translation_mm"),
@@ -157,16 +160,18 @@ def print_tables(rows: list[dict]) -> None:
     pooled: dict[tuple, list] = {}
     for row in rows:
         pooled.setdefault((row["set"], row["part"], row["condition"]), []).extend(row["images"])
-    print("\n| set | part | condition | images | success | ADD-S < 0.1 d | er < 0.01 | median rot (deg) | "
-          "median trans (mm) | mean er | median ms |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("\n| set | part | condition | images | success | success up to symmetry | ADD-S < 0.1 d | er < 0.01 | "
+          "median rot (deg) | median trans (mm) | mean er | median ms |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for (part_set_name, part, condition), images in pooled.items():
         r = rates(images)
-        print(f"| {part_set_name} | {part} | {condition} | {r['n']} | {r['success']:.2f} | {r['add_s']:.2f} | "
+        print(f"| {part_set_name} | {part} | {condition} | {r['n']} | {r['success']:.2f} | {r['success_sym']:.2f} | "
+              f"{r['add_s']:.2f} | "
               f"{r['er']:.2f} | {r['rot']:.1f} | {r['trans']:.1f} | {r['mean_er']:.3f} | {r['ms']:.0f} |")
     sets = sorted({key[0] for key in pooled}, reverse=True)  # tune first
     conditions = list(dict.fromkeys(key[2] for key in pooled))
-    print("\nPer set (pooled over its parts' images): success / ADD-S < 0.1 d / median ms\n")
+    print("\nPer set (pooled over its parts' images): success / success up to symmetry / ADD-S < 0.1 d / "
+          "median ms\n")
     print("| condition | " + " | ".join(f"{s} ({len({k[1] for k in pooled if k[0] == s})} parts)"
                                         for s in sets) + " |")
     print("|---|" + "---|" * len(sets))
@@ -175,7 +180,7 @@ def print_tables(rows: list[dict]) -> None:
         for name in sets:
             r = rates([i for key, images in pooled.items() if key[0] == name and key[2] == condition
                        for i in images])
-            cells.append(f"{r['success']:.2f} / {r['add_s']:.2f} / {r['ms']:.0f}")
+            cells.append(f"{r['success']:.2f} / {r['success_sym']:.2f} / {r['add_s']:.2f} / {r['ms']:.0f}")
         print(f"| {condition} | " + " | ".join(cells) + " |")
 
 
