@@ -29,8 +29,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import (CONDITIONS, LOOKS, PARTS, SCENES_VERSION, SPAN, TUNING,  # noqa: E402
-                            distractor_meshes, scene, step_file)
+from bench.accuracy import (CONDITIONS, LOOKS, PARTS, SPAN, TUNING,  # noqa: E402
+                            distractor_meshes, scene, scenes_folder, step_file)
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.figures import pyplot, save_figure  # noqa: E402
@@ -58,7 +58,7 @@ class Collector:
 
     def scene(self, name: str, step: Path, condition: str):
         config = SceneConfig(span=SPAN, look=self.look, **CONDITIONS[condition])
-        folder = self.cache / f"scenes_v{SCENES_VERSION}_{self.look}" / f"{name}_{condition}_{self.seed}"
+        folder = self.cache / scenes_folder(self.look, SPAN) / f"{name}_{condition}_{self.seed}"
         return scene(step, folder, self.n, self.seed, config, self.distractors)
 
     def collect(self, names: list[str]):

@@ -35,7 +35,7 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, SCENES_VERSION, part_set, step_file  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, SPAN, part_set, scenes_folder, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from bench.hypothesis_recall import near_truth  # noqa: E402
 from bench.search_oracle import hypothesis_near, near_templates  # noqa: E402
@@ -128,7 +128,7 @@ def main(argv=None) -> int:
         model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
         estimator = Estimator(graph, params)
         for condition in args.conditions:
-            scene = load_scene(cache / f"scenes_v{SCENES_VERSION}_varied" / f"{name}_{condition}_100")
+            scene = load_scene(cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_100")
             for entry in scene.entries[args.start:args.start + args.n]:
                 image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
                 frame = Frame.of(detect_edges(image, params.edges), scene.camera)

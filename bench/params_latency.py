@@ -21,7 +21,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import CONDITIONS, PARTS, SCENES_VERSION, SPAN, distractor_meshes, scene, step_file  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, SPAN, distractor_meshes, scene, scenes_folder, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
@@ -48,7 +48,7 @@ def main(argv=None) -> int:
         estimator = Estimator(AspectGraph.load(cached_graph_path(step, cache, args.step_deg)))
         for condition in args.conditions:
             config = SceneConfig(span=SPAN, look="varied", **CONDITIONS[condition])
-            folder = cache / f"scenes_v{SCENES_VERSION}_varied" / f"{name}_{condition}_{args.seed}"
+            folder = cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_{args.seed}"
             loaded = scene(step, folder, args.n, args.seed, config, distractors)
             images = [cv2.imread(str(e.path), cv2.IMREAD_UNCHANGED) for e in loaded.entries[:args.n]]
             for round_ in range(args.rounds):

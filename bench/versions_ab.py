@@ -29,7 +29,7 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, SCENES_VERSION, part_set, step_file  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, SPAN, part_set, scenes_folder, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
@@ -78,12 +78,14 @@ def main(argv=None) -> int:
                 graph = graph_class.load(cached_graph_path(step, cache, 5.0))
                 estimators[label] = (graph, estimator_class(graph), load_scene)
             for condition in args.conditions:
-                folder = cache / f"scenes_v{SCENES_VERSION}_varied" / f"{name}_{condition}_100"
+                folder = cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_100"
+                # each version reads the scene with its own scene_folder, once per condition
+                scenes = {label: load_scene(folder) for label, (_, _, load_scene) in estimators.items()}
                 for i in range(args.n):
                     row = {"set": part_set(name), "part": name, "condition": condition, "image": i}
                     for label in (["base", "new"] if i % 2 == 0 else ["new", "base"]):
-                        graph, estimator, load_scene = estimators[label]
-                        scene = load_scene(folder)
+                        graph, estimator, _ = estimators[label]
+                        scene = scenes[label]
                         entry = scene.entries[i]
                         image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
                         start = time.perf_counter()
