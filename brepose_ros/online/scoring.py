@@ -116,6 +116,12 @@ class Shares(NamedTuple):
         return 2 * self.confirmed * self.explained / max(self.confirmed + self.explained, 1e-12) * self.significance
 
 
+def beyond_chance(confirmed: float, expected: float, length: float) -> float:
+    """The a-contrario share: of ``length`` (model points, or pixels of model length), what
+    is confirmed beyond the ``expected`` amount chance confirms there, in [0, 1]."""
+    return float(max(confirmed - expected, 0.0) / max(length - expected, 1e-12))
+
+
 def kl_divergence(share: float, chance: float) -> float:
     """KL divergence (nats) of a Bernoulli of ``share`` from one of ``chance``, 0 when the
     share is no more than chance: per sample, the exponent of the Chernoff bound on the
@@ -136,7 +142,10 @@ class EdgeEvidence:
     * ``supports`` (model -> image): share of the projected model edge length within
       ``tolerance`` of an edge pixel of like direction (oriented chamfer: each model point
       looks up whether an edge pixel in its direction bin or the two next to it is that
-      near). The twin check compares poses by it on the edges that tell them apart.
+      near), not corrected for chance.
+    * ``confirmed_beyond_chance``: the same look-up once per short piece, corrected for
+      chance as *confirmed* below: the twin check compares poses by it on the edges that
+      tell them apart.
     * ``shares``, the score's three parts (``Shares``), counted in one compiled pass per
       pose (``kernels.pose_evidence_kernel``, GIL released):
       - *confirmed*: the same look-ups, corrected for chance the a-contrario way: a model
@@ -237,6 +246,18 @@ class EdgeEvidence:
                 out[b] = weight[lo:hi][near[lo:hi]].sum() / max(weight[lo:hi].sum(), 1e-12)
         return out
 
+    def confirmed_beyond_chance(self, pieces: np.ndarray, tolerance_px: float) -> float:
+        """The share of short pieces (N, 2, 2), pixels, each looked up once at its centre, that
+        like edges confirm beyond what chance would confirm there (``chance``): a piece on
+        clutter or texture is not confirmed by it. 0 for no pieces."""
+        if len(pieces) == 0:
+            return 0.0
+        h, w = self.shape
+        x, y = np.clip(np.rint(pieces.mean(axis=1)).astype(int) + 1, 0, [w + 1, h + 1]).T
+        bins = self.orientation_bin(pieces)
+        confirmed = self.near_like(tolerance_px)[bins, y, x].sum()
+        return beyond_chance(confirmed, self.chance(tolerance_px)[bins, y, x].sum(), len(pieces))
+
     def near_like(self, tolerance_px: float) -> np.ndarray:
         """(BINS, H + 2, W + 2) bool: per direction bin, the pixels within ``tolerance_px`` of
         a like edge pixel (``like_edges`` dilated by the chamfer ball), with one pixel of
@@ -302,7 +323,7 @@ class EdgeEvidence:
         if length <= 0:
             return Shares(0.0, 0.0, 0.0)
         surprise = length * kl_divergence(confirmed / length, by_chance / length)
-        return Shares(confirmed=float(max(confirmed - by_chance, 0.0) / max(length - by_chance, 1e-12)),
+        return Shares(confirmed=beyond_chance(confirmed, by_chance, length),
                       explained=float(explained / seen_edges) if seen_edges > 0 else 0.0,
                       significance=1.0 - float(np.exp(-surprise / self.SIGNIFICANT_PIXELS)))
 

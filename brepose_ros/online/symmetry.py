@@ -98,7 +98,7 @@ def twin_evidence(graph: AspectGraph, pose: Candidate, twin: Candidate, frame: F
                   p: PoseParams) -> tuple[float, bool]:
     """How much more the image shows of the twin than of the pose, and whether it can tell:
     the twin's share of its distinguishing edges that the image confirms beyond chance minus
-    the pose's share of its own (``beyond_chance``). When neither shows ``MIN_DISTINCT_PIXELS``
+    the pose's share of its own (``EdgeEvidence.confirmed_beyond_chance``). When neither shows ``MIN_DISTINCT_PIXELS``
     of distinguishing edge (a small feature on a small image, or one seen edge-on), the image
     cannot tell (False), and the difference of the whole scores, which the feature still
     moves a little, is all there is to choose by."""
@@ -108,23 +108,8 @@ def twin_evidence(graph: AspectGraph, pose: Candidate, twin: Candidate, frame: F
     pieces = [distinct_pieces(drawn[0], drawn[1], reach), distinct_pieces(drawn[1], drawn[0], reach)]
     if max(len(piece) for piece in pieces) * PIECE_PIXELS < MIN_DISTINCT_PIXELS:
         return twin.score - pose.score, False
-    shares = [beyond_chance(frame, piece, p.inlier_pixels) for piece in pieces]
+    shares = [frame.evidence.confirmed_beyond_chance(piece, p.inlier_pixels) for piece in pieces]
     return float(shares[1] - shares[0]), True
-
-
-def beyond_chance(frame: Frame, pieces: np.ndarray, tolerance_px: float) -> float:
-    """The share of the pieces (N, 2, 2), pixels, that like image edges confirm beyond what
-    chance would confirm there, as the score counts it (``scoring.EdgeEvidence``): a piece's
-    chance is the local density of like edges, so a feature that lands on clutter or texture
-    is not confirmed by it. 0 for no pieces."""
-    if len(pieces) == 0:
-        return 0.0
-    h, w = frame.evidence.shape
-    centers = np.clip(np.rint(pieces.mean(axis=1)).astype(int) + 1, 0, [w + 1, h + 1])
-    bins = frame.evidence.orientation_bin(pieces)
-    confirmed = frame.evidence.near_like(tolerance_px)[bins, centers[:, 1], centers[:, 0]].sum()
-    expected = frame.evidence.chance(tolerance_px)[bins, centers[:, 1], centers[:, 0]].sum()
-    return float(max(confirmed - expected, 0.0) / max(len(pieces) - expected, 1e-12))
 
 
 def distinct_pieces(segments: np.ndarray, others: np.ndarray, reach: float) -> np.ndarray:
