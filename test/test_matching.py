@@ -1,6 +1,7 @@
 """The metric space and the bipartite matcher on segment sets with exact answers."""
 import numpy as np
 import pytest
+from scipy.optimize import linear_sum_assignment
 
 from brepose_ros.online import matching, prefilter
 from brepose_ros.metric_space import normalisation_of, outline_normalisation
@@ -97,9 +98,28 @@ def test_rotation_candidates_contain_true_rotation():
         assert np.min(np.abs(wrapped(phis - angle))) < np.radians(3)
 
 
-def batch(*sets, size=None):
-    """The segment sets as one padded batch (to ``size``, or to the largest set plus 3)."""
-    return matching.SegmentBatch.pad(list(sets), size or max(len(s) for s in sets) + 3)
+WEIGHTS = np.array([MatchParams().weight_length, MatchParams().weight_midpoint, MatchParams().weight_orientation,
+                    MatchParams().weight_perpendicular])
+
+
+def assign(model, image, phi, p=MatchParams()):
+    """(cost, image index per model segment, nearest) of one model set against an image set."""
+    return matching._assignment(matching._geometry(model), matching._geometry(image), phi, WEIGHTS,
+                                p.empty_coefficient, p.nearest_threshold)
+
+
+def test_kuhn_munkres_is_scipys_assignment_ties_included():
+    """The compiled Kuhn-Munkres follows SciPy's algorithm step for step: the same pairs on
+    wide, tall and square matrices, also where many assignments cost the same."""
+    rng = np.random.default_rng(14)
+    for trial in range(600):
+        shape = tuple(rng.integers(1, 30, size=2))
+        cost = (rng.integers(0, 4, size=shape).astype(float) if trial % 3 == 0  # many ties
+                else np.minimum(rng.uniform(size=shape), 0.3 if trial % 3 == 1 else 1.0))  # clipped, as assign does
+        rows, cols = linear_sum_assignment(cost)
+        want = np.full(shape[0], -1)
+        want[rows] = cols
+        assert np.array_equal(matching._kuhn_munkres(cost), want)
 
 
 def test_assignment_recovers_pairs_and_similarity_despite_clutter():
@@ -107,33 +127,30 @@ def test_assignment_recovers_pairs_and_similarity_despite_clutter():
     segs = random_shape(rng, 16)
     order = rng.permutation(len(segs))
     image = similarity(segs[order], 1.0, 1.1, 0.0) + rng.normal(0, 0.01, size=(len(segs), 2, 2))
-    clutter = rng.uniform(-2, 2, size=(6, 2, 2))
-    image_f = matching.describe(np.concatenate([image, clutter]))
-    model = batch(segs)
-    phi = np.array([1.1])
-    assignment = matching.assign(model, image_f, phi, MatchParams())
-    found = assignment.image_index[0]
+    image = np.concatenate([image, rng.uniform(-2, 2, size=(6, 2, 2))])  # clutter
+    _, found, nearest = assign(segs, image, 1.1)
     correct = sum(found[order[i]] == i for i in range(len(segs)))
     assert correct >= len(segs) - 2
-    assert assignment.nearest[0].sum() > 0.7 * len(segs)
-    fit = matching.similarity_from_pairs(model, image_f, assignment, phi)
-    assert fit.found[0]
-    assert fit.scale[0] == pytest.approx(1.0, abs=0.05)
-    assert wrapped(fit.angle[0] - 1.1) == pytest.approx(0.0, abs=0.03)
-    assert np.linalg.norm(fit.shift[0]) < 0.05
+    assert nearest.sum() > 0.7 * len(segs)
+    lengths = matching._geometry(segs)[0], matching._geometry(image)[0]
+    scale, angle, shift, ok = matching._similarity_from_pairs(segs, lengths[0], image, lengths[1], found, nearest, 1.1)
+    assert ok
+    assert scale == pytest.approx(1.0, abs=0.05)
+    assert wrapped(angle - 1.1) == pytest.approx(0.0, abs=0.03)
+    assert np.linalg.norm(shift) < 0.05
 
 
 def test_wrong_rotation_costs_more_than_right_one():
     rng = np.random.default_rng(5)
     segs = random_shape(rng)
-    image_f = matching.describe(similarity(segs, 1.0, 0.5, 0.0))
-    result = matching.assign(batch(segs, segs), image_f, np.array([0.5, 0.5 + np.pi / 2]), MatchParams())
-    assert result.cost[0] < 0.5 * result.cost[1]
-    assert result.nearest[0].sum() > result.nearest[1].sum()
+    image = similarity(segs, 1.0, 0.5, 0.0)
+    right, wrong = assign(segs, image, 0.5), assign(segs, image, 0.5 + np.pi / 2)
+    assert right[0] < 0.5 * wrong[0]
+    assert right[2].sum() > wrong[2].sum()
 
 
 def reference_distance_matrix(model, image, phi, p):
-    """distance_matrix of one set, as it was written before batching."""
+    """The tetrad distance written out with numpy, one set at a time."""
     c, s = np.cos(phi), np.sin(phi)
     rot = np.array([[c, -s], [s, c]])
     d_len = model.lengths[:, None] - image.lengths[None, :]
@@ -146,58 +163,59 @@ def reference_distance_matrix(model, image, phi, p):
                    + p.weight_perpendicular * np.einsum("ijk,ijk->ij", d_feet, d_feet))
 
 
-def test_batched_distances_are_the_per_set_distances_to_the_bit():
+def test_distances_are_the_tetrad_distance_written_out():
     rng = np.random.default_rng(9)
-    sets = [random_shape(rng, n) for n in (5, 9, 14, 14)]
-    image = matching.describe(random_shape(rng, 11))
-    phis = np.array([0.0, 1.3, np.pi, 2 * np.pi - 1e-12])
-    p = MatchParams()
-    dist = matching.distance_matrix(batch(*sets), image, phis, p)
-    for j, segs in enumerate(sets):
-        want = reference_distance_matrix(matching.describe(segs), image, phis[j], p)
-        assert np.array_equal(dist[j, :len(segs)], want)
+    image = random_shape(rng, 11)
+    for n, phi in ((5, 0.0), (9, 1.3), (14, np.pi), (14, 2 * np.pi - 1e-12)):
+        segs = random_shape(rng, n)
+        dist = matching._distances(matching._geometry(segs), matching._geometry(image), phi, WEIGHTS)
+        want = reference_distance_matrix(matching.describe(segs), matching.describe(image), phi, MatchParams())
+        assert np.allclose(dist, want, rtol=1e-13, atol=1e-13)
 
 
-def test_mod_pi_is_np_mod_to_the_bit():
+def test_mod_is_np_mod_to_the_bit():
     rng = np.random.default_rng(10)
-    near_multiples = np.array([np.nextafter(k * np.pi, side) for k in range(-1, 5) for side in (-np.inf, np.inf)]
-                              + [k * np.pi for k in range(-1, 4)] + [0.0, -0.0])
-    x = np.concatenate([near_multiples[(near_multiples >= -np.pi) & (near_multiples < 4 * np.pi)],
-                        rng.uniform(-np.pi, 4 * np.pi, 200_000)])
-    assert np.array_equal(matching._mod_pi(x), np.mod(x, np.pi))
-    outside = np.array([-4.0, 13.0, 100.0])
-    assert np.array_equal(matching._mod_pi(outside), np.mod(outside, np.pi))
+    near_multiples = [np.nextafter(k * np.pi, side) for k in range(-1, 5) for side in (-np.inf, np.inf)]
+    x = np.concatenate([near_multiples, [k * np.pi for k in range(-1, 4)], [0.0, -0.0, -4.0, 13.0, 100.0],
+                        rng.uniform(-np.pi, 4 * np.pi, 5000)])
+    got = np.array([matching._mod(v, np.pi) for v in x])
+    assert np.array_equal(got, np.mod(x, np.pi)) and not np.signbit(got).any()
 
 
-def test_padding_changes_no_assignment():
-    """Padded segments never match and never set the empty distance, whose matrix maximum
-    is over the set's real entries: a set gives the same pairs alone and in a batch."""
+def test_a_job_aligns_alike_alone_and_among_others():
+    """Jobs are independent: a job's similarity and coverage do not depend on the batch
+    (the worker threads split a region's jobs anywhere)."""
     rng = np.random.default_rng(11)
-    sets = [random_shape(rng, n) * 0.2 for n in (4, 12, 7)]  # small sets: padding lies far
-    image = matching.describe(np.concatenate([random_shape(rng, 10), [[[-3.0, -3.0], [3.0, 3.0]]]]))
-    phis = np.array([0.2, 2.0, 4.0])
-    p = MatchParams()
-    together = matching.assign(batch(*sets, size=20), image, phis, p)
-    for j, segs in enumerate(sets):
-        alone = matching.assign(batch(segs, size=len(segs)), image, phis[j:j + 1], p)
-        n = len(segs)
-        assert np.array_equal(together.image_index[j, :n], alone.image_index[0])
-        assert np.all(together.image_index[j, n:] == -1)
-        assert np.array_equal(together.nearest[j, :n], alone.nearest[0]) and not together.nearest[j, n:].any()
-        assert together.empty_distance[j] == alone.empty_distance[0]
-        assert together.cost[j] == pytest.approx(alone.cost[0], rel=1e-15)
+    views = [random_shape(rng, n) * 0.5 for n in (4, 12, 7, 12)]
+    image = matching.describe(np.concatenate([similarity(views[1], 1.1, 0.4, np.array([0.05, 0.0])),
+                                              random_shape(rng, 6) * 0.5]))
+    segments = np.concatenate(views)
+    offsets = np.concatenate([[0], np.cumsum([len(v) for v in views])])
+    jobs, phi = np.array([0, 1, 2, 3, 1]), np.array([0.2, 0.4, 4.0, 1.0, 0.4 + np.pi])
+    together = matching.align(segments, offsets, jobs, phi, image, MatchParams())
+    assert 1 in together.jobs  # the view the image shows, at its rotation
+    k = list(together.jobs).index(1)
+    assert together.scale[k] == pytest.approx(1.1, abs=1e-6) and together.angle[k] == pytest.approx(0.4, abs=1e-6)
+    assert together.coverage[k] > 0.7
+    for j in range(len(jobs)):
+        alone = matching.align(segments, offsets, jobs[j:j + 1], phi[j:j + 1], image, MatchParams())
+        assert (j in together.jobs) == (len(alone.jobs) == 1)
+        if j in together.jobs:
+            k = list(together.jobs).index(j)
+            got = [together.scale[k], together.angle[k], *together.shift[k], together.coverage[k]]
+            assert np.array_equal(got, [alone.scale[0], alone.angle[0], *alone.shift[0], alone.coverage[0]])
 
 
 def test_weighted_similarity_is_exact_on_clean_points():
     rng = np.random.default_rng(6)
-    src = rng.normal(size=(2, 10, 2))
-    src[1] = 1.0  # no spread: no similarity
-    dst = similarity(src[0][:, None, :], 2.5, -0.4, np.array([1.0, 2.0]))[:, 0]
-    fit = matching.weighted_similarity(src, np.stack([dst, dst]), np.ones((2, 10)))
-    assert fit.found.tolist() == [True, False]
-    assert fit.scale[0] == pytest.approx(2.5)
-    assert fit.angle[0] == pytest.approx(-0.4)
-    assert np.allclose(fit.shift[0], [1.0, 2.0])
+    src = rng.normal(size=(10, 2))
+    dst = similarity(src[:, None, :], 2.5, -0.4, np.array([1.0, 2.0]))[:, 0]
+    scale, angle, shift, found = matching._weighted_similarity(src, dst, np.ones(10))
+    assert found
+    assert scale == pytest.approx(2.5)
+    assert angle == pytest.approx(-0.4)
+    assert np.allclose(shift, [1.0, 2.0])
+    assert not matching._weighted_similarity(np.ones((10, 2)), dst, np.ones(10))[3]  # no spread: no similarity
 
 
 def reference_coverage(source, target, tolerance, max_angle_deg=12.0, per_segment=4):
@@ -220,45 +238,41 @@ def reference_coverage(source, target, tolerance, max_angle_deg=12.0, per_segmen
 def test_coverage_matches_the_pointwise_definition():
     rng = np.random.default_rng(7)
     segs = random_shape(rng, 20)
-    sets = [segs, segs[5:12], similarity(segs, 1.0, 0.05, 0.03)]
-    model = batch(*sets)
+    min_cos = np.cos(np.radians(matching.COVERAGE_MAX_ANGLE_DEG))
     for tolerance in (0.01, 0.04, 0.1):
         # some image segments just within and just beyond the tolerance
         image = np.concatenate([similarity(segs[:14], 1.0, 0.02, 0.01), segs[14:17] + 0.9 * tolerance / np.sqrt(2),
                                 segs[17:] + 1.1 * tolerance, rng.uniform(-1, 1, size=(8, 2, 2))])
-        model_share, image_share = matching.coverage(model.segments, model.valid, image, tolerance)
-        for j, source in enumerate(sets):
-            assert model_share[j] == pytest.approx(reference_coverage(source, image, tolerance), abs=1e-12)
-            assert image_share[j] == pytest.approx(reference_coverage(image, source, tolerance), abs=1e-12)
+        for source in (segs, segs[5:12], similarity(segs, 1.0, 0.05, 0.03)):
+            model_share, image_share = matching._coverage(source, image, tolerance, min_cos)
+            assert model_share == pytest.approx(reference_coverage(source, image, tolerance), abs=1e-12)
+            assert image_share == pytest.approx(reference_coverage(image, source, tolerance), abs=1e-12)
 
 
 def test_least_squares_is_lstsq_also_where_the_normal_equations_fail():
     rng = np.random.default_rng(12)
     rows, rhs = rng.normal(size=(3, 12, 4)), rng.normal(size=(3, 12))
     rows[1, :, 2:] = [0.6, 0.8]  # every point on one line: rank 3, lstsq's minimum-norm answer
-    rows[2, 8:], rhs[2, 8:] = 0.0, 0.0  # four padding rows
-    used = np.ones((3, 12), bool)
-    used[2, 8:] = False
-    got = matching._least_squares(rows, rhs, used)
+    rows[2, :, 3] = 1e-4 * rows[2, :, 0]  # condition number ~1e4
     for j in range(3):
-        want = np.linalg.lstsq(rows[j, used[j]], rhs[j, used[j]], rcond=None)[0]
-        assert np.allclose(got[j], want, rtol=1e-12, atol=1e-12)
+        want = np.linalg.lstsq(rows[j], rhs[j], rcond=None)[0]
+        assert np.allclose(matching._least_squares(rows[j], rhs[j]), want, rtol=1e-10, atol=1e-12)
 
 
-def test_align_to_lines_pulls_each_set_onto_the_image():
+def test_align_to_lines_pulls_a_set_onto_the_image():
     rng = np.random.default_rng(13)
     image = random_shape(rng, 16)
-    sets = [similarity(image, 1.02, 0.015, np.array([0.01, -0.02])), similarity(image[3:12], 0.98, -0.01, 0.015),
-            image[:2]]  # too few segments to align: left alone
-    model = batch(*sets)
-    moved, total = matching.align_to_lines(model.segments, model.valid, image, (0.12, 0.04))
-    for j in range(2):
-        n = len(sets[j])
-        assert np.abs(moved[j, :n] - image[3 * j:3 * j + n]).max() < 1e-9
-        assert np.allclose(sets[j] @ total[j, :, :2].T + total[j, :, 2], moved[j, :n])
-        alone, _ = matching.align_to_lines(model.segments[j:j + 1], model.valid[j:j + 1], image, (0.12, 0.04))
-        assert np.allclose(alone[0], moved[j], rtol=0, atol=1e-14)
-    assert np.array_equal(moved[2], model.segments[2]) and np.array_equal(total[2], np.eye(2, 3))
+    cos10 = np.cos(np.radians(10.0))
+    tolerances = np.array([0.12, 0.04])
+    for start, model in ((0, similarity(image, 1.02, 0.015, np.array([0.01, -0.02]))),
+                         (3, similarity(image[3:12], 0.98, -0.01, 0.015))):
+        moved = model.copy()
+        total = matching._align_to_lines(moved, image, tolerances, cos10)
+        assert np.abs(moved - image[start:start + len(model)]).max() < 1e-9
+        assert np.allclose(model @ total[:, :2].T + total[:, 2], moved)
+    few = image[:2].copy()  # too few segments to align: left alone
+    assert np.array_equal(matching._align_to_lines(few, image, tolerances, cos10), np.eye(2, 3))
+    assert np.array_equal(few, image[:2])
 
 
 def test_prefilter_scores_match_a_plain_gather():

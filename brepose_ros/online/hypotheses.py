@@ -55,9 +55,10 @@ class ViewLibrary:
             self.features.append(matching.describe(norm.apply(metric)))
         histograms = np.stack([orientation_histogram(f.orientations, f.lengths) for f in self.features])
         self.orientation_spectra = orientation_spectra(histograms)
-        #: matching pads every view's segment set to this size, the largest view's rather
-        #: than ``max_segments``: padding costs time in every batched step
-        self.pad_size = max(len(f.segments) for f in self.features)
+        #: every view's segments in one array, view v at ``offsets[v]:offsets[v + 1]``: the
+        #: compiled matching (``matching.align``) takes a batch's views from it by index
+        self.segments = np.ascontiguousarray(np.concatenate([f.segments for f in self.features]))
+        self.offsets = np.concatenate([[0], np.cumsum([len(f.segments) for f in self.features])]).astype(np.int64)
         self.prefilter = ChamferPrefilter([f.segments for f in self.features])
 
     def shortlist(self, region: Region, p: MatchParams, pool: WorkerPool) -> list[tuple[int, float]]:
@@ -133,13 +134,12 @@ class TetradHypotheses:
         return region, seed.view, seed.phi
 
     def _match_batch(self, jobs: list[Job], p: MatchParams) -> list[Hypothesis]:
-        """``matching.align`` for jobs of one region at once (``matching.SegmentBatch``),
-        each aligned job composed into the similarity view metres -> virtual image."""
+        """``matching.align`` for jobs of one region at once (one compiled call, the GIL
+        released), each aligned job composed into the similarity view metres -> virtual image."""
         region = jobs[0][0]
-        views = np.array([view for _, view, _ in jobs])
+        views = np.array([view for _, view, _ in jobs], np.int64)
         phi = np.array([phi for _, _, phi in jobs])
-        model = matching.SegmentBatch.pad([self._views.features[v].segments for v in views], self._views.pad_size)
-        aligned = matching.align(model, region.features, phi, p)
+        aligned = matching.align(self._views.segments, self._views.offsets, views, phi, region.features, p)
         if len(aligned.jobs) == 0:
             return []
         views = views[aligned.jobs]

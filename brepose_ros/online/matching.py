@@ -3,9 +3,9 @@ paper section 6).
 
 For one image region and one view, both normalised for translation and scale
 (``metric_space``), the distance matrix of their tetrads is solved as a bipartite
-assignment with empty elements (Kuhn-Munkres, ``scipy.optimize.linear_sum_assignment``);
-the matched pairs split into the nearest group and the rest. ``align`` chains the steps
-and ranks the aligned views by coverage.
+assignment with empty elements (Kuhn-Munkres, ``_assignment``); the matched pairs split
+into the nearest group and the rest. ``align`` chains the steps and ranks the aligned
+views by coverage.
 
 Where this goes beyond the paper, and why:
 
@@ -23,24 +23,34 @@ Where this goes beyond the paper, and why:
 * The matched pairs also give a similarity transform (Procrustes on the nearest pairs),
   which corrects the image normalisation that clutter and occlusion bias.
 * Ranking. After that alignment, views are ranked by how much of the view's and of the
-  region's edge length the other set covers (``coverage``, an F-measure), which picks the
-  right view far more often than the assignment's distance sum (docs/DECISIONS.md).
-* Batches. The jobs of one region run together: the views' segment sets are zero-padded
-  to one size (``SegmentBatch``) and every step but Kuhn-Munkres, which runs per job on
-  its real rows, is one array operation for all jobs, since per-call overhead dominated
-  job by job. Distance matrices and assignments equal the job-by-job ones to the bit.
+  region's edge length the other set covers (``_coverage``, an F-measure), which picks
+  the right view far more often than the assignment's distance sum (docs/DECISIONS.md).
+* Compiled. A worker's chunk of jobs runs as one numba ``nogil`` call (``align_kernel``):
+  as numpy, each job was dozens of short array calls and a SciPy Kuhn-Munkres call, each
+  taking and releasing the GIL, and two threads spent their time handing it over
+  (docs/results/latency.md). The Kuhn-Munkres is SciPy's algorithm step for step
+  (shortest augmenting paths, Crouse 2016), so it picks the same pairs, ties included.
 """
 from __future__ import annotations
 
-import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
+from numba import njit
 
 from ..metric_space import segment_lengths
 from ..params import MatchParams
-from .lines2d import line_equations, nearest_lines, point_segment_distance
+from .kernels import nearest_lines_kernel
+from .lines2d import NEAREST_MAX_ANGLE_DEG, cos_deg
+
+#: coverage counts segments within this angle as parallel, a little wider than the line
+#: association's 10 degrees: the aligned view is still a view up to half the graph's
+#: spacing away from the true one
+COVERAGE_MAX_ANGLE_DEG = 12.0
+#: points per segment tested by the coverage: a quarter of a segment is resolution enough
+#: to rank views
+COVERAGE_POINTS = 4
 
 
 @dataclass
@@ -62,319 +72,14 @@ def longest(segments: np.ndarray, count: int) -> np.ndarray:
 
 def describe(segments: np.ndarray) -> SegmentFeatures:
     """Features of a normalised segment set (N, 2, 2)."""
-    segments = np.asarray(segments, dtype=float)
+    segments = np.ascontiguousarray(segments, dtype=float).reshape(-1, 2, 2)
     return SegmentFeatures(segments, *_geometry(segments))
-
-
-def _geometry(segments: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Lengths, midpoints, orientations modulo pi and perpendicular feet of segments (..., 2, 2)."""
-    a, b = segments[..., 0, :], segments[..., 1, :]
-    d = b - a
-    lengths = np.linalg.norm(d, axis=-1)
-    mid = (a + b) / 2.0
-    orient = np.mod(np.arctan2(d[..., 1], d[..., 0]), np.pi)
-    unit = d / np.maximum(lengths, 1e-12)[..., None]
-    feet = mid - np.sum(mid * unit, axis=-1)[..., None] * unit
-    return lengths, mid, orient, feet
-
-
-@dataclass
-class SegmentBatch:
-    """Segment sets of different sizes, one per matching job, zero-padded to one size M.
-
-    All (view, rotation) jobs of one image region then run as a few operations on
-    (J, M, ...) arrays instead of dozens of small numpy calls each, whose overhead cost
-    more than their arithmetic. Set j owns the first ``counts[j]`` entries; the functions
-    below never let the padding (finite, masked by ``valid``) reach a result.
-    """
-
-    segments: np.ndarray  # (J, M, 2, 2)
-    valid: np.ndarray  # (J, M) bool
-    lengths: np.ndarray  # (J, M)
-    midpoints: np.ndarray  # (J, M, 2)
-    orientations: np.ndarray  # (J, M) modulo pi
-    feet: np.ndarray  # (J, M, 2)
-
-    @classmethod
-    def of(cls, segments: np.ndarray, valid: np.ndarray) -> "SegmentBatch":
-        return cls(segments, valid, *_geometry(segments))
-
-    @classmethod
-    def pad(cls, sets: list[np.ndarray], size: int) -> "SegmentBatch":
-        """The sets padded to ``size`` segments: a fixed size, not the batch's largest set,
-        keeps every set's sums in the same order however the jobs are batched."""
-        counts = np.array([len(s) for s in sets])
-        valid = np.arange(size) < counts[:, None]
-        segments = np.zeros(valid.shape + (2, 2))
-        segments[valid] = np.concatenate(sets)
-        return cls.of(segments, valid)
-
-    @property
-    def counts(self) -> np.ndarray:
-        return self.valid.sum(axis=1)
-
-
-def take(batch, jobs):
-    """A batch dataclass (``SegmentBatch``, ``Assignment``, ``Similarity``) reduced to some jobs."""
-    return dataclasses.replace(batch, **{f.name: getattr(batch, f.name)[jobs] for f in dataclasses.fields(batch)})
-
-
-def distance_matrix(model: SegmentBatch, image: SegmentFeatures, phi: np.ndarray, p: MatchParams) -> np.ndarray:
-    """(J, M, n_image) tetrad distances, set j of the model turned by ``phi[j]``."""
-    turn = rotations(phi).transpose(0, 2, 1)
-    squared = p.weight_length * (model.lengths[..., None] - image.lengths) ** 2
-    squared += p.weight_midpoint * _squared_distances(model.midpoints @ turn, image.midpoints)
-    d_ori = _mod_pi(model.orientations[..., None] + phi[:, None, None] - image.orientations + np.pi / 2) - np.pi / 2
-    squared += p.weight_orientation * d_ori**2
-    squared += p.weight_perpendicular * _squared_distances(model.feet @ turn, image.feet)
-    return np.sqrt(squared, out=squared)
-
-
-def _squared_distances(points: np.ndarray, others: np.ndarray) -> np.ndarray:
-    """(..., M, N) squared distances of points (..., M, 2) to others (N, 2)."""
-    dx = points[..., 0, None] - others[:, 0]
-    dy = points[..., 1, None] - others[:, 1]
-    return dx * dx + dy * dy
-
-
-def _mod_pi(x: np.ndarray) -> np.ndarray:
-    """np.mod(x, pi) to the bit for x in [-pi, 4 pi), at half its cost (its fmod is slow).
-
-    Where x >= 2 pi, x - 2 pi is exact: it is np.mod's result or, for x >= 3 pi, lies in
-    [pi, 2 pi) on a grid fine enough to hold it; then x - pi is exact on [pi, 2 pi), and
-    below 0 np.mod adds pi with the same rounding. Other x take np.mod itself.
-    """
-    if not (x.min(initial=0.0) >= -np.pi and x.max(initial=0.0) < 4 * np.pi):
-        return np.mod(x, np.pi)
-    x = x.copy()
-    np.subtract(x, 2 * np.pi, out=x, where=x >= 2 * np.pi)
-    np.subtract(x, np.pi, out=x, where=x >= np.pi)
-    np.add(x, np.pi, out=x, where=x < 0)
-    return x
 
 
 def rotations(angle: np.ndarray) -> np.ndarray:
     """(J, 2, 2) rotation matrices [[c, -s], [s, c]]."""
     c, s = np.cos(angle), np.sin(angle)
     return np.stack([c, -s, s, c], axis=-1).reshape(np.shape(angle) + (2, 2))
-
-
-@dataclass
-class Assignment:
-    """Kuhn-Munkres results of a batch of (view, rotation) jobs against one image region."""
-
-    cost: np.ndarray  # (J,) distance sum with empty elements, per element of both sets
-    image_index: np.ndarray  # (J, M) image segment paired with each model segment, -1 if empty
-    distances: np.ndarray  # (J, M) distance of each pair
-    nearest: np.ndarray  # (J, M) bool: the pair is in the nearest group
-    n_model: np.ndarray  # (J,)
-    empty_distance: np.ndarray  # (J,)
-
-
-def assign(model: SegmentBatch, image: SegmentFeatures, phi: np.ndarray, p: MatchParams) -> Assignment:
-    """Bipartite matching with empty elements on both sides, for each set of the batch.
-
-    As in the paper, the empty distance is tied to the largest distance of the matrix
-    (``empty_coefficient`` times it; over the set's real segments only); pairs in the
-    nearest group are closer than ``nearest_threshold`` times the empty distance.
-    Kuhn-Munkres runs per set, on its real rows.
-    """
-    dist = distance_matrix(model, image, phi, p)
-    empty_distance = p.empty_coefficient * np.where(model.valid[..., None], dist, 0.0).max(axis=(1, 2))
-    clip = 2.0 * empty_distance
-    clipped = np.minimum(dist, clip[:, None, None])
-    image_index = np.full(model.valid.shape, -1)
-    n_model = model.counts
-    for j, rows in enumerate(n_model):
-        matched_rows, cols = linear_sum_assignment(clipped[j, :rows])
-        image_index[j, matched_rows] = cols
-    pair_dist = np.take_along_axis(dist, np.maximum(image_index, 0)[..., None], axis=2)[..., 0]
-    real = (image_index >= 0) & (pair_dist < clip[:, None])
-    image_index[~real] = -1
-    n_pairs = real.sum(axis=1)
-    unmatched = (n_model - n_pairs) + (dist.shape[2] - n_pairs)
-    cost = (np.where(real, pair_dist, 0.0).sum(axis=1) + empty_distance * unmatched) / (n_model + dist.shape[2])
-    nearest = real & (pair_dist < p.nearest_threshold * empty_distance[:, None])
-    return Assignment(cost, image_index, pair_dist, nearest, n_model, empty_distance)
-
-
-@dataclass
-class Similarity:
-    """Similarities x -> scale R(angle) x + shift, one per job; ``found`` is False where the
-    pairs did not determine one."""
-
-    scale: np.ndarray  # (J,)
-    angle: np.ndarray  # (J,)
-    shift: np.ndarray  # (J, 2)
-    found: np.ndarray  # (J,) bool
-
-
-def similarity_from_pairs(model: SegmentBatch, image: SegmentFeatures, assignment: Assignment,
-                          phi: np.ndarray) -> Similarity:
-    """Scale, rotation and shift mapping each model set to image points, from its nearest pairs.
-
-    Weighted 2D Procrustes (Umeyama) over the matched segments' end points, each pair's
-    end points taken in the order that fits best once the model is turned by ``phi``, the
-    rotation the pairs were matched at. Not found with fewer than two nearest pairs.
-    """
-    keep = assignment.nearest
-    index = np.maximum(assignment.image_index, 0)
-    src, dst = model.segments, image.segments[index]
-    turned = apply_similarity(src, np.ones(len(phi)), phi, np.zeros((len(phi), 2)))
-    straight = np.sum((turned - dst) ** 2, axis=(2, 3))
-    swapped = np.sum((turned - dst[:, :, ::-1]) ** 2, axis=(2, 3))
-    dst = np.where((swapped < straight)[..., None, None], dst[:, :, ::-1], dst)
-    weights = np.repeat(np.where(keep, np.minimum(model.lengths, image.lengths[index]), 0.0), 2, axis=1)
-    n_sets = len(src)
-    similarity = weighted_similarity(src.reshape(n_sets, -1, 2), dst.reshape(n_sets, -1, 2), weights)
-    similarity.found &= keep.sum(axis=1) >= 2
-    return similarity
-
-
-def apply_similarity(segments: np.ndarray, scale: np.ndarray, angle: np.ndarray, shift: np.ndarray) -> np.ndarray:
-    """Points or segments (J, ..., 2) mapped by scale[j] * R(angle[j]) x + shift[j]."""
-    segments = np.asarray(segments)
-    moved = scale[:, None, None] * segments.reshape(len(segments), -1, 2) @ rotations(angle).transpose(0, 2, 1)
-    return _shifted(moved, shift).reshape(segments.shape)
-
-
-def _shifted(points: np.ndarray, shift: np.ndarray) -> np.ndarray:
-    """points (J, P, 2) + shift (J, 2), in place and one coordinate at a time: numpy
-    broadcasts slowly over a last axis of length 2."""
-    points[..., 0] += shift[:, 0, None]
-    points[..., 1] += shift[:, 1, None]
-    return points
-
-
-def weighted_similarity(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> Similarity:
-    """Per set j, (scale, angle, shift) minimising sum w |scale R(angle) src + shift - dst|^2
-    over points (J, P, 2) with weights (J, P); not found where the source points do not
-    spread or the scale is not positive."""
-    w = weights / np.maximum(weights.sum(axis=1), 1e-12)[:, None]
-    mu_s, mu_d = np.einsum("jp,jpk->jk", w, src), np.einsum("jp,jpk->jk", w, dst)
-    a, b = src - mu_s[:, None], dst - mu_d[:, None]
-    var = np.einsum("jp,jp->j", w, np.sum(a * a, axis=2))
-    cross = (w[..., None] * a).transpose(0, 2, 1) @ b  # (J, 2, 2)
-    angle = np.arctan2(cross[:, 0, 1] - cross[:, 1, 0], cross[:, 0, 0] + cross[:, 1, 1])
-    rot = rotations(angle)
-    spread = var > 1e-12
-    scale = np.einsum("jpk,jpk,jp->j", a @ rot.transpose(0, 2, 1), b, w) / np.where(spread, var, 1.0)
-    shift = mu_d - scale[:, None] * np.einsum("jkl,jl->jk", rot, mu_s)
-    return Similarity(scale, angle, shift, spread & (scale > 0))
-
-
-def coverage(model: np.ndarray, valid: np.ndarray, image: np.ndarray, tolerance: float,
-             max_angle_deg: float = 12.0, per_segment: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Two-way edge coverage of each model set (J, M, 2, 2; ``valid`` marks real segments)
-    and the image segments: the share of the set's length, and the share of the image's,
-    lying within ``tolerance`` of a parallel segment of the other side. An oriented chamfer
-    test in the normalised frame, on ``per_segment`` points per segment (a quarter of a
-    segment is resolution enough to rank views). Parallel means within ``max_angle_deg``,
-    a little wider than the line association's 10 degrees: the aligned view is still a
-    view up to half the graph's spacing away from the true one.
-
-    Only a few (model, image) pairs can cover: parallel ones whose bounding boxes lie
-    closer than the tolerance (plus a margin far above rounding); distances are measured
-    for those pairs only.
-    """
-    sets = np.nonzero(valid)[0]
-    flat = model[valid]
-    fu, iu = flat[:, 1] - flat[:, 0], image[:, 1] - image[:, 0]
-    f_len = np.sqrt(fu[:, 0] * fu[:, 0] + fu[:, 1] * fu[:, 1])
-    i_len = np.sqrt(iu[:, 0] * iu[:, 0] + iu[:, 1] * iu[:, 1])
-    cos = np.abs(fu @ iu.T) / np.maximum(np.outer(f_len, i_len), 1e-18)
-    f_lo, f_hi = np.minimum(flat[:, 0], flat[:, 1]), np.maximum(flat[:, 0], flat[:, 1])
-    i_lo, i_hi = np.minimum(image[:, 0], image[:, 1]), np.maximum(image[:, 0], image[:, 1])
-    gap = np.maximum(np.maximum(f_lo[:, None, 0] - i_hi[:, 0], i_lo[:, 0] - f_hi[:, None, 0]),
-                     np.maximum(f_lo[:, None, 1] - i_hi[:, 1], i_lo[:, 1] - f_hi[:, None, 1]))
-    fi, ii = np.nonzero((cos > np.cos(np.radians(max_angle_deg))) & (gap < tolerance * (1 + 1e-6)))
-    frac = (np.arange(per_segment) + 0.5) / per_segment
-    covered_model = np.zeros((len(flat), per_segment), bool)
-    point, pair = np.nonzero(_near_points(flat[fi], image[ii], frac, tolerance))
-    covered_model[fi[pair], point] = True
-    covered_image = np.zeros((len(model), len(image), per_segment), bool)
-    point, pair = np.nonzero(_near_points(image[ii], flat[fi], frac, tolerance))
-    covered_image[sets[fi[pair]], ii[pair], point] = True
-    n_sets = len(model)
-    model_share = (np.bincount(sets, covered_model.sum(axis=1) * (f_len / per_segment), n_sets)
-                   / np.maximum(np.bincount(sets, f_len, n_sets), 1e-18))
-    image_share = (covered_image.sum(axis=2) * (i_len / per_segment)).sum(axis=1) / max(i_len.sum(), 1e-18)
-    return model_share, image_share
-
-
-def _near_points(source: np.ndarray, target: np.ndarray, frac: np.ndarray, tolerance: float) -> np.ndarray:
-    """(len(frac), P) bool: the point at frac[k] along source[p] lies within ``tolerance``
-    of target[p]."""
-    start, direction = source[:, 0], source[:, 1] - source[:, 0]
-    return point_segment_distance(start + frac[:, None, None] * direction, target) < tolerance
-
-
-def align_to_lines(model: np.ndarray, valid: np.ndarray, image: np.ndarray,
-                   tolerances: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """2D ICP on segments: per set of ``model`` (J, M, 2, 2; ``valid`` marks its real
-    segments), a similarity pulling its end points onto their nearest image lines,
-    re-associating at each tolerance in turn (normalised units).
-
-    The similarity x' = [[p, -q], [q, p]] x + b is linear in (p, q, bx, by), and so is
-    the distance of x' to a line: each round is one 4x4 least-squares solve per set. A set
-    stops when fewer than three of its segments find a line or the solve degenerates.
-    Returns the moved model segments and the (J, 2, 3) similarity matrices applied to them.
-    """
-    n_sets = len(model)
-    total = np.tile(np.eye(2, 3), (n_sets, 1, 1))
-    moved = model
-    lines = line_equations(image)
-    active = np.ones(n_sets, bool)
-    for tolerance in tolerances:
-        asked = valid & active[:, None]
-        mi, ii, _ = nearest_lines(moved[asked], image, tolerance)
-        sets, slots = (index[mi] for index in np.nonzero(asked))
-        matched = np.zeros_like(asked)
-        matched[sets, slots] = True
-        line = np.zeros(asked.shape, int)
-        line[sets, slots] = ii
-        active &= matched.sum(axis=1) >= 3
-        if not active.any():
-            break
-        x, y = moved[..., 0], moved[..., 1]  # (J, M, 2): both end points
-        nx, ny, c = (np.broadcast_to(lines[line][..., k, None], x.shape) for k in range(3))
-        weights = np.where(matched, segment_lengths(moved.reshape(-1, 2, 2)).reshape(matched.shape), 0.0)[..., None]
-        rows = np.stack([nx * x + ny * y, -nx * y + ny * x, nx, ny], axis=-1) * weights[..., None]
-        rhs = -c * weights
-        solution = np.zeros((n_sets, 4))
-        solution[active] = _least_squares(rows[active].reshape(-1, 2 * valid.shape[1], 4),
-                                          rhs[active].reshape(-1, 2 * valid.shape[1]),
-                                          np.repeat(matched[active], 2, axis=1))
-        p, q, bx, by = solution.T
-        active &= np.isfinite(solution).all(axis=1) & (np.hypot(p, q) >= 1e-6)
-        step = np.where(active[:, None, None], np.stack([p, -q, bx, q, p, by], -1).reshape(-1, 2, 3), np.eye(2, 3))
-        moved = moved.reshape(n_sets, -1, 2) @ step[:, :, :2].transpose(0, 2, 1)
-        moved = _shifted(moved, step[:, :, 2]).reshape(model.shape)
-        total = step[:, :, :2] @ total
-        total[:, :, 2] += step[:, :, 2]
-    return moved, total
-
-
-def _least_squares(rows: np.ndarray, rhs: np.ndarray, used: np.ndarray) -> np.ndarray:
-    """(J, 4): per set j, x minimising |rows[j] x - rhs[j]| over its ``used`` rows (the
-    others are zero), as np.linalg.lstsq gives it, for all sets at once.
-
-    By the 4x4 normal equations and one step of iterative refinement: within 1e-12 of
-    lstsq on the ICP's systems (relative; 7e-11 without the refinement). Sets with a
-    condition number above 1e3 (say, every end point matched to one line) lose digits
-    that way and go to lstsq one by one, which also gives their minimum-norm answer.
-    """
-    rows_t = rows.transpose(0, 2, 1)
-    gram = rows_t @ rows
-    eigen = np.linalg.eigvalsh(gram)
-    well = eigen[:, 0] > 1e-6 * eigen[:, -1]
-    solution = np.empty((len(rows), 4))
-    a, a_t, b, g = rows[well], rows_t[well], rhs[well][..., None], gram[well]
-    x = np.linalg.solve(g, a_t @ b)
-    solution[well] = (x + np.linalg.solve(g, a_t @ (b - a @ x)))[..., 0]
-    for j in np.nonzero(~well)[0]:
-        solution[j] = np.linalg.lstsq(rows[j, used[j]], rhs[j, used[j]], rcond=None)[0]
-    return solution
 
 
 @dataclass
@@ -388,33 +93,431 @@ class Alignment:
     coverage: np.ndarray  # (K,) F-measure of the two-way edge coverage after alignment
 
 
-def align(model: SegmentBatch, image: SegmentFeatures, phi: np.ndarray, p: MatchParams) -> Alignment:
-    """The correspondence step for a batch of jobs (model sets turned by ``phi``) against
-    one image region: Kuhn-Munkres at each rotation, the similarity its nearest pairs
-    imply, a second assignment with that similarity applied (kept where it costs less),
-    then the similarity polished by 2D ICP against the region's lines and the aligned
-    sets ranked by ``coverage``. Jobs whose pairs give no similarity drop out."""
-    best = assign(model, image, phi, p)
-    similarity = similarity_from_pairs(model, image, best, phi)
-    jobs = np.nonzero(similarity.found)[0]
-    if len(jobs) == 0:
-        return Alignment(jobs, np.zeros(0), np.zeros(0), np.zeros((0, 2)), np.zeros(0))
-    model, best, similarity = take(model, jobs), take(best, jobs), take(similarity, jobs)
-    # re-match with the similarity applied: the pairs now say what is really aligned
-    moved = apply_similarity(model.segments, similarity.scale, similarity.angle, similarity.shift)
-    refined = assign(SegmentBatch.of(moved, model.valid), image, np.zeros(len(jobs)), p)
-    better = similarity_from_pairs(model, image, refined, similarity.angle)
-    switch = (refined.cost < best.cost) & better.found
-    for name in ("scale", "angle", "shift"):
-        getattr(similarity, name)[switch] = getattr(better, name)[switch]
-    a, angle, b = similarity.scale, similarity.angle, similarity.shift
-    moved = apply_similarity(model.segments, a, angle, b)
-    tolerance = p.coverage_tolerance
-    # a wide ICP round brings similarities off by more than the tolerance within reach
-    moved, polish = align_to_lines(moved, model.valid, image.segments, (3 * tolerance, tolerance))
-    A = polish[:, :, :2] @ (a[:, None, None] * rotations(angle))
-    b = np.einsum("jkl,jl->jk", polish[:, :, :2], b) + polish[:, :, 2]
-    a, angle = np.sqrt(np.abs(np.linalg.det(A))), np.arctan2(A[:, 1, 0], A[:, 0, 0])
-    covered_model, covered_image = coverage(moved, model.valid, image.segments, tolerance)
-    f_measure = 2 * covered_model * covered_image / np.maximum(covered_model + covered_image, 1e-12)
-    return Alignment(jobs, a, angle, b, f_measure)
+def align(segments: np.ndarray, offsets: np.ndarray, views: np.ndarray, phi: np.ndarray, image: SegmentFeatures,
+          p: MatchParams) -> Alignment:
+    """The correspondence step for a batch of jobs against one image region: job j is view
+    ``views[j]`` (segments ``segments[offsets[v]:offsets[v + 1]]``, normalised) turned by
+    ``phi[j]``. Kuhn-Munkres at that rotation, the similarity its nearest pairs imply, a
+    second assignment with that similarity applied (kept where it costs less), then the
+    similarity polished by 2D ICP against the region's lines and the aligned sets ranked by
+    coverage. Jobs whose pairs give no similarity drop out. One compiled call, the GIL
+    released throughout (``align_kernel``)."""
+    found, out = np.zeros(len(views), np.bool_), np.zeros((len(views), 5))
+    weights = np.array([p.weight_length, p.weight_midpoint, p.weight_orientation, p.weight_perpendicular])
+    align_kernel(segments, offsets, np.asarray(views, np.int64), np.asarray(phi, float), image.segments, weights,
+                 p.empty_coefficient, p.nearest_threshold, p.coverage_tolerance, cos_deg(NEAREST_MAX_ANGLE_DEG),
+                 cos_deg(COVERAGE_MAX_ANGLE_DEG), found, out)
+    jobs = np.nonzero(found)[0]
+    return Alignment(jobs, out[jobs, 0], out[jobs, 1], out[jobs, 2:4], out[jobs, 4])
+
+
+@njit(nogil=True, cache=True)
+def align_kernel(segments: np.ndarray, offsets: np.ndarray, views: np.ndarray, phi: np.ndarray, image: np.ndarray,
+                 weights: np.ndarray, empty_coefficient: float, nearest_threshold: float, tolerance: float,
+                 line_cos: float, coverage_cos: float, found: np.ndarray, out: np.ndarray) -> None:
+    """``align`` for every job: found[j] whether job j gave a similarity, out[j] its
+    (scale, angle, shift x, shift y, coverage F-measure)."""
+    i_geometry = _geometry(image)
+    i_lengths = i_geometry[0]
+    for j in range(len(views)):
+        model = segments[offsets[views[j]]:offsets[views[j] + 1]]
+        m_geometry = _geometry(model)
+        cost, index, nearest = _assignment(m_geometry, i_geometry, phi[j], weights, empty_coefficient,
+                                           nearest_threshold)
+        scale, angle, shift, ok = _similarity_from_pairs(model, m_geometry[0], image, i_lengths, index, nearest,
+                                                         phi[j])
+        if not ok:
+            continue
+        found[j] = True
+        # re-match with the similarity applied: the pairs now say what is really aligned
+        moved = _apply_similarity(model, scale, angle, shift)
+        moved_cost, index, nearest = _assignment(_geometry(moved), i_geometry, 0.0, weights, empty_coefficient,
+                                                 nearest_threshold)
+        better = _similarity_from_pairs(model, m_geometry[0], image, i_lengths, index, nearest, angle)
+        if moved_cost < cost and better[3]:
+            scale, angle, shift = better[0], better[1], better[2]
+        moved = _apply_similarity(model, scale, angle, shift)
+        # a wide ICP round brings similarities off by more than the tolerance within reach
+        polish = _align_to_lines(moved, image, np.array([3.0 * tolerance, tolerance]), line_cos)
+        # the polish composed onto the similarity: A = polish[:, :2] scale R(angle)
+        sc, ss = scale * math.cos(angle), scale * math.sin(angle)
+        a00, a01 = polish[0, 0] * sc + polish[0, 1] * ss, polish[0, 0] * -ss + polish[0, 1] * sc
+        a10, a11 = polish[1, 0] * sc + polish[1, 1] * ss, polish[1, 0] * -ss + polish[1, 1] * sc
+        out[j, 0] = math.sqrt(abs(a00 * a11 - a01 * a10))
+        out[j, 1] = math.atan2(a10, a00)
+        out[j, 2] = polish[0, 0] * shift[0] + polish[0, 1] * shift[1] + polish[0, 2]
+        out[j, 3] = polish[1, 0] * shift[0] + polish[1, 1] * shift[1] + polish[1, 2]
+        covered_model, covered_image = _coverage(moved, image, tolerance, coverage_cos)
+        out[j, 4] = 2 * covered_model * covered_image / max(covered_model + covered_image, 1e-12)
+
+
+@njit(nogil=True, cache=True)
+def _geometry(segments: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Lengths, midpoints, orientations modulo pi and perpendicular feet of segments (N, 2, 2)."""
+    n = len(segments)
+    lengths, midpoints, orientations, feet = np.empty(n), np.empty((n, 2)), np.empty(n), np.empty((n, 2))
+    for i in range(n):
+        ax, ay, bx, by = segments[i, 0, 0], segments[i, 0, 1], segments[i, 1, 0], segments[i, 1, 1]
+        dx, dy = bx - ax, by - ay
+        lengths[i] = math.sqrt(dx * dx + dy * dy)
+        mx, my = (ax + bx) / 2.0, (ay + by) / 2.0
+        midpoints[i, 0], midpoints[i, 1] = mx, my
+        orientations[i] = _mod(math.atan2(dy, dx), math.pi)
+        ux, uy = dx / max(lengths[i], 1e-12), dy / max(lengths[i], 1e-12)
+        along = mx * ux + my * uy
+        feet[i, 0], feet[i, 1] = mx - along * ux, my - along * uy
+    return lengths, midpoints, orientations, feet
+
+
+@njit(nogil=True, cache=True)
+def _mod(x: float, period: float) -> float:
+    """np.mod(x, period) for a positive period, to the bit (fmod, then the sign of the period)."""
+    rest = np.fmod(x, period)
+    if rest < 0.0:
+        return rest + period
+    return rest if rest != 0.0 else 0.0
+
+
+@njit(nogil=True, cache=True)
+def _distances(model, image, phi: float, weights: np.ndarray) -> np.ndarray:
+    """(M, N) tetrad distances of the model's segments turned by ``phi`` to the image's;
+    both as ``_geometry`` gives them."""
+    m_lengths, m_mid, m_orient, m_feet = model
+    i_lengths, i_mid, i_orient, i_feet = image
+    c, s = math.cos(phi), math.sin(phi)
+    dist = np.empty((len(m_lengths), len(i_lengths)))
+    for r in range(len(m_lengths)):
+        mx, my = m_mid[r, 0] * c - m_mid[r, 1] * s, m_mid[r, 0] * s + m_mid[r, 1] * c
+        fx, fy = m_feet[r, 0] * c - m_feet[r, 1] * s, m_feet[r, 0] * s + m_feet[r, 1] * c
+        for k in range(len(i_lengths)):
+            d_length = m_lengths[r] - i_lengths[k]
+            squared = weights[0] * (d_length * d_length)
+            dx, dy = mx - i_mid[k, 0], my - i_mid[k, 1]
+            squared += weights[1] * (dx * dx + dy * dy)
+            # orientations are directions modulo pi: their difference wraps to [-pi/2, pi/2)
+            d_orient = _mod(m_orient[r] + phi - i_orient[k] + math.pi / 2, math.pi) - math.pi / 2
+            squared += weights[2] * (d_orient * d_orient)
+            dx, dy = fx - i_feet[k, 0], fy - i_feet[k, 1]
+            squared += weights[3] * (dx * dx + dy * dy)
+            dist[r, k] = math.sqrt(squared)
+    return dist
+
+
+@njit(nogil=True, cache=True)
+def _assignment(model, image, phi: float, weights: np.ndarray, empty_coefficient: float,
+                nearest_threshold: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """Bipartite matching with empty elements on both sides of the model (turned by ``phi``)
+    and the image: its cost (the distance sum with empty elements, per element of both
+    sets), the image segment paired with each model segment (-1 if empty) and whether the
+    pair is in the nearest group.
+
+    As in the paper, the empty distance is tied to the largest distance of the matrix
+    (``empty_coefficient`` times it); pairs in the nearest group are closer than
+    ``nearest_threshold`` times the empty distance.
+    """
+    dist = _distances(model, image, phi, weights)
+    n_model, n_image = dist.shape
+    empty = empty_coefficient * max(dist.max(), 0.0) if dist.size else 0.0
+    clip = 2.0 * empty
+    index = _kuhn_munkres(np.minimum(dist, clip))
+    nearest = np.zeros(n_model, np.bool_)
+    n_pairs, total = 0, 0.0
+    for r in range(n_model):
+        k = index[r]
+        if k >= 0 and dist[r, k] < clip:
+            n_pairs += 1
+            total += dist[r, k]
+            nearest[r] = dist[r, k] < nearest_threshold * empty
+        else:
+            index[r] = -1
+    unmatched = (n_model - n_pairs) + (n_image - n_pairs)
+    return (total + empty * unmatched) / (n_model + n_image), index, nearest
+
+
+@njit(nogil=True, cache=True)
+def _kuhn_munkres(cost: np.ndarray) -> np.ndarray:
+    """The column assigned to each row of ``cost`` (-1 if none) minimising the sum:
+    ``scipy.optimize.linear_sum_assignment``'s algorithm (shortest augmenting paths,
+    Crouse 2016, scipy's rectangular_lsap.cpp) step for step, so the same pairs, ties
+    included. A tall matrix is solved transposed, as there."""
+    n_rows, n_cols = cost.shape
+    transpose = n_cols < n_rows
+    if transpose:
+        cost = cost.T.copy()
+        n_rows, n_cols = n_cols, n_rows
+    u, v = np.zeros(n_rows), np.zeros(n_cols)
+    path, col4row, row4col = np.full(n_cols, -1), np.full(n_rows, -1), np.full(n_cols, -1)
+    shortest = np.empty(n_cols)
+    in_rows, in_cols = np.zeros(n_rows, np.bool_), np.zeros(n_cols, np.bool_)
+    remaining = np.empty(n_cols, np.int64)
+    for current in range(n_rows):
+        # Dijkstra from the current row over reduced costs to the nearest free column
+        for it in range(n_cols):
+            remaining[it] = n_cols - it - 1  # in reverse, as scipy: a constant matrix gives the identity
+        n_remaining = n_cols
+        in_rows[:] = False
+        in_cols[:] = False
+        shortest[:] = np.inf
+        min_value, i, sink = 0.0, current, -1
+        while sink == -1:
+            index, lowest = -1, np.inf
+            in_rows[i] = True
+            for it in range(n_remaining):
+                j = remaining[it]
+                reduced = min_value + cost[i, j] - u[i] - v[j]
+                if reduced < shortest[j]:
+                    path[j], shortest[j] = i, reduced
+                # among equal costs prefer a free column: it ends the path
+                if shortest[j] < lowest or (shortest[j] == lowest and row4col[j] == -1):
+                    lowest, index = shortest[j], it
+            min_value = lowest
+            j = remaining[index]
+            if row4col[j] == -1:
+                sink = j
+            else:
+                i = row4col[j]
+            in_cols[j] = True
+            n_remaining -= 1
+            remaining[index] = remaining[n_remaining]
+        # the dual variables, then the matching along the path
+        u[current] += min_value
+        for i in range(n_rows):
+            if in_rows[i] and i != current:
+                u[i] += min_value - shortest[col4row[i]]
+        for j in range(n_cols):
+            if in_cols[j]:
+                v[j] -= min_value - shortest[j]
+        j = sink
+        while True:
+            i = path[j]
+            row4col[j] = i
+            col4row[i], j = j, col4row[i]
+            if i == current:
+                break
+    if not transpose:
+        return col4row
+    col_of_row = np.full(n_cols, -1)
+    for row in range(n_rows):
+        col_of_row[col4row[row]] = row
+    return col_of_row
+
+
+@njit(nogil=True, cache=True)
+def _similarity_from_pairs(model: np.ndarray, m_lengths: np.ndarray, image: np.ndarray, i_lengths: np.ndarray,
+                           index: np.ndarray, nearest: np.ndarray, phi: float) -> tuple[float, float, np.ndarray, bool]:
+    """(scale, angle, shift, found): the similarity mapping the model onto the image from the
+    nearest pairs, not found with fewer than two.
+
+    Weighted 2D Procrustes (Umeyama) over the pairs' end points, each pair weighted by its
+    shorter segment and its end points taken in the order that fits best once the model
+    is turned by ``phi``, the rotation the pairs were matched at.
+    """
+    c, s = math.cos(phi), math.sin(phi)
+    src, dst, w = np.zeros((2 * len(model), 2)), np.zeros((2 * len(model), 2)), np.zeros(2 * len(model))
+    for r in range(len(model)):
+        if not nearest[r]:
+            continue
+        k = index[r]
+        straight = swapped = 0.0
+        for e in range(2):
+            x, y = model[r, e, 0], model[r, e, 1]
+            tx, ty = x * c - y * s, x * s + y * c
+            straight += (tx - image[k, e, 0]) ** 2 + (ty - image[k, e, 1]) ** 2
+            swapped += (tx - image[k, 1 - e, 0]) ** 2 + (ty - image[k, 1 - e, 1]) ** 2
+        for e in range(2):
+            src[2 * r + e] = model[r, e]
+            dst[2 * r + e] = image[k, 1 - e] if swapped < straight else image[k, e]
+            w[2 * r + e] = min(m_lengths[r], i_lengths[k])
+    scale, angle, shift, found = _weighted_similarity(src, dst, w)
+    return scale, angle, shift, found and nearest.sum() >= 2
+
+
+@njit(nogil=True, cache=True)
+def _weighted_similarity(src: np.ndarray, dst: np.ndarray,
+                         weights: np.ndarray) -> tuple[float, float, np.ndarray, bool]:
+    """(scale, angle, shift, found) minimising sum w |scale R(angle) src + shift - dst|^2 over
+    points (P, 2); not found where the source points do not spread or the scale is not
+    positive."""
+    w = weights / max(weights.sum(), 1e-12)
+    mu_s, mu_d = np.zeros(2), np.zeros(2)
+    for i in range(len(w)):
+        mu_s += w[i] * src[i]
+        mu_d += w[i] * dst[i]
+    var, cross = 0.0, np.zeros((2, 2))
+    for i in range(len(w)):
+        ax, ay, bx, by = src[i, 0] - mu_s[0], src[i, 1] - mu_s[1], dst[i, 0] - mu_d[0], dst[i, 1] - mu_d[1]
+        var += w[i] * (ax * ax + ay * ay)
+        cross[0, 0] += w[i] * ax * bx
+        cross[0, 1] += w[i] * ax * by
+        cross[1, 0] += w[i] * ay * bx
+        cross[1, 1] += w[i] * ay * by
+    angle = math.atan2(cross[0, 1] - cross[1, 0], cross[0, 0] + cross[1, 1])
+    c, s = math.cos(angle), math.sin(angle)
+    spread = var > 1e-12
+    # sum w (R a) . b is the trace of R^T times the weighted cross covariance
+    scale = (c * (cross[0, 0] + cross[1, 1]) + s * (cross[0, 1] - cross[1, 0])) / (var if spread else 1.0)
+    shift = np.array([mu_d[0] - scale * (c * mu_s[0] - s * mu_s[1]), mu_d[1] - scale * (s * mu_s[0] + c * mu_s[1])])
+    return scale, angle, shift, spread and scale > 0
+
+
+@njit(nogil=True, cache=True)
+def _apply_similarity(segments: np.ndarray, scale: float, angle: float, shift: np.ndarray) -> np.ndarray:
+    """Segments (N, 2, 2) mapped by scale R(angle) x + shift."""
+    c, s = math.cos(angle), math.sin(angle)
+    moved = np.empty_like(segments)
+    for i in range(len(segments)):
+        for e in range(2):
+            x, y = scale * segments[i, e, 0], scale * segments[i, e, 1]
+            moved[i, e, 0], moved[i, e, 1] = x * c - y * s + shift[0], x * s + y * c + shift[1]
+    return moved
+
+
+@njit(nogil=True, cache=True)
+def _align_to_lines(moved: np.ndarray, image: np.ndarray, tolerances: np.ndarray, line_cos: float) -> np.ndarray:
+    """2D ICP on segments: a similarity pulling the end points of ``moved`` (N, 2, 2, moved
+    in place) onto their nearest image lines, re-associating at each tolerance in turn
+    (normalised units). Returns the (2, 3) similarity matrix applied.
+
+    The similarity x' = [[p, -q], [q, p]] x + b is linear in (p, q, bx, by), and so is the
+    distance of x' to a line: each round is one 4-unknown least-squares solve. It stops
+    when fewer than three segments find a line or the solve degenerates.
+    """
+    total = np.zeros((2, 3))
+    total[0, 0] = total[1, 1] = 1.0
+    lines = _line_equations(image)
+    best, best_cost = np.empty(len(moved), np.int64), np.empty(len(moved))
+    for tolerance in tolerances:
+        nearest_lines_kernel(moved, image, tolerance, line_cos, best, best_cost)
+        matched = np.nonzero(best >= 0)[0]
+        if len(matched) < 3:
+            break
+        rows, rhs = np.empty((2 * len(matched), 4)), np.empty(2 * len(matched))
+        for m in range(len(matched)):
+            r = matched[m]
+            nx, ny, offset = lines[best[r], 0], lines[best[r], 1], lines[best[r], 2]
+            dx, dy = moved[r, 1, 0] - moved[r, 0, 0], moved[r, 1, 1] - moved[r, 0, 1]
+            weight = math.sqrt(dx * dx + dy * dy)  # long segments are the reliable ones
+            for e in range(2):
+                x, y = moved[r, e, 0], moved[r, e, 1]
+                rows[2 * m + e, 0], rows[2 * m + e, 1] = (nx * x + ny * y) * weight, (-nx * y + ny * x) * weight
+                rows[2 * m + e, 2], rows[2 * m + e, 3] = nx * weight, ny * weight
+                rhs[2 * m + e] = -offset * weight
+        p, q, bx, by = _least_squares(rows, rhs)
+        if not (np.isfinite(p) and np.isfinite(q) and np.isfinite(bx) and np.isfinite(by) and math.hypot(p, q) >= 1e-6):
+            break
+        for i in range(len(moved)):
+            for e in range(2):
+                x, y = moved[i, e, 0], moved[i, e, 1]
+                moved[i, e, 0], moved[i, e, 1] = x * p - y * q + bx, x * q + y * p + by
+        t0, t1 = total[0].copy(), total[1].copy()
+        total[0] = p * t0 - q * t1
+        total[1] = q * t0 + p * t1
+        total[0, 2] += bx
+        total[1, 2] += by
+    return total
+
+
+@njit(nogil=True, cache=True)
+def _line_equations(segments: np.ndarray) -> np.ndarray:
+    """(K, 3) lines a x + b y + c = 0 of segments (K, 2, 2), (a, b) a unit normal."""
+    lines = np.empty((len(segments), 3))
+    for k in range(len(segments)):
+        x, y = segments[k, 0, 0], segments[k, 0, 1]
+        dx, dy = segments[k, 1, 0] - x, segments[k, 1, 1] - y
+        length = max(math.sqrt(dx * dx + dy * dy), 1e-12)
+        lines[k, 0], lines[k, 1] = -dy / length, dx / length
+        lines[k, 2] = -(lines[k, 0] * x + lines[k, 1] * y)
+    return lines
+
+
+@njit(nogil=True, cache=True)
+def _least_squares(rows: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """x minimising |rows x - rhs| (minimum norm where that is not unique), as
+    np.linalg.lstsq gives it: by one-sided Jacobi SVD (Hestenes), accurate also where every
+    end point lies on one line and the normal equations lose their digits."""
+    n = rows.shape[1]
+    u, v = rows.copy(), np.eye(n)
+    for _ in range(60):
+        turned = False
+        for a in range(n - 1):
+            for b in range(a + 1, n):
+                alpha, beta, gamma = 0.0, 0.0, 0.0
+                for i in range(len(u)):
+                    alpha += u[i, a] * u[i, a]
+                    beta += u[i, b] * u[i, b]
+                    gamma += u[i, a] * u[i, b]
+                if abs(gamma) <= 1e-15 * math.sqrt(alpha * beta):
+                    continue
+                turned = True
+                # the plane rotation that makes columns a and b orthogonal
+                zeta = (beta - alpha) / (2.0 * gamma)
+                t = math.copysign(1.0, zeta) / (abs(zeta) + math.sqrt(1.0 + zeta * zeta))
+                c = 1.0 / math.sqrt(1.0 + t * t)
+                s = c * t
+                for m in (u, v):
+                    for i in range(len(m)):
+                        ma, mb = m[i, a], m[i, b]
+                        m[i, a], m[i, b] = c * ma - s * mb, s * ma + c * mb
+        if not turned:
+            break
+    sigma = np.sqrt((u * u).sum(axis=0))
+    # lstsq's default cut-off: singular values below eps max(M, N) times the largest are zero
+    cutoff = 2.220446049250313e-16 * max(len(rows), n) * sigma.max()
+    x = np.zeros(n)
+    for k in range(n):
+        if sigma[k] > cutoff:
+            along = 0.0
+            for i in range(len(u)):
+                along += u[i, k] * rhs[i]
+            x += along / (sigma[k] * sigma[k]) * v[:, k]
+    return x
+
+
+@njit(nogil=True, cache=True)
+def _coverage(model: np.ndarray, image: np.ndarray, tolerance: float, min_cos: float) -> tuple[float, float]:
+    """Two-way edge coverage of the model's segments and the image's: the share of the
+    model's length, and the share of the image's, lying within ``tolerance`` of a parallel
+    segment of the other side (within ``min_cos``), tested on ``COVERAGE_POINTS`` points per
+    segment: an oriented chamfer test in the normalised frame.
+
+    Only parallel pairs whose bounding boxes lie closer than the tolerance (plus a margin
+    far above rounding) can cover; the points are measured for those pairs only.
+    """
+    n_points = COVERAGE_POINTS
+    covered_model = np.zeros((len(model), n_points), np.bool_)
+    covered_image = np.zeros((len(image), n_points), np.bool_)
+    m_lengths, i_lengths = _geometry(model)[0], _geometry(image)[0]
+    for f in range(len(model)):
+        fx, fy = model[f, 1, 0] - model[f, 0, 0], model[f, 1, 1] - model[f, 0, 1]
+        for k in range(len(image)):
+            ix, iy = image[k, 1, 0] - image[k, 0, 0], image[k, 1, 1] - image[k, 0, 1]
+            if not abs(fx * ix + fy * iy) / max(m_lengths[f] * i_lengths[k], 1e-18) > min_cos:
+                continue
+            gap = -np.inf
+            for axis in range(2):
+                f_lo, f_hi = min(model[f, 0, axis], model[f, 1, axis]), max(model[f, 0, axis], model[f, 1, axis])
+                i_lo, i_hi = min(image[k, 0, axis], image[k, 1, axis]), max(image[k, 0, axis], image[k, 1, axis])
+                gap = max(gap, f_lo - i_hi, i_lo - f_hi)
+            if not gap < tolerance * (1 + 1e-6):
+                continue
+            for point in range(n_points):
+                frac = (point + 0.5) / n_points
+                if _point_distance(model[f], frac, image[k]) < tolerance:
+                    covered_model[f, point] = True
+                if _point_distance(image[k], frac, model[f]) < tolerance:
+                    covered_image[k, point] = True
+    model_share = (covered_model.sum(axis=1) * (m_lengths / n_points)).sum() / max(m_lengths.sum(), 1e-18)
+    image_share = (covered_image.sum(axis=1) * (i_lengths / n_points)).sum() / max(i_lengths.sum(), 1e-18)
+    return model_share, image_share
+
+
+@njit(nogil=True, cache=True)
+def _point_distance(source: np.ndarray, frac: float, target: np.ndarray) -> float:
+    """Distance of the point at ``frac`` along segment ``source`` (2, 2) to segment ``target``."""
+    px = source[0, 0] + frac * (source[1, 0] - source[0, 0])
+    py = source[0, 1] + frac * (source[1, 1] - source[0, 1])
+    ax, ay = target[0, 0], target[0, 1]
+    dx, dy = target[1, 0] - ax, target[1, 1] - ay
+    u = min(max(((px - ax) * dx + (py - ay) * dy) / max(dx * dx + dy * dy, 1e-18), 0.0), 1.0)
+    ex, ey = px - (ax + u * dx), py - (ay + u * dy)
+    return math.sqrt(ex * ex + ey * ey)

@@ -1,9 +1,10 @@
 """The worker threads that share one image's work: the stages split their batches (views of
 the pre-filter, jobs of the matching, poses of the refinement) into one chunk per worker.
 
-Threads, not processes: the chunks are large array operations, OpenCV calls and SciPy's
-Kuhn-Munkres, which release the GIL, and a process pool would copy every chunk's arrays
-(../shared/ROS2_ON_PIP.md measured a 2-process pool 2x slower than one thread). The calling
+Threads, not processes: the chunks are OpenCV calls, large array operations and compiled
+numba kernels (``kernels``, ``matching``), which release the GIL, and a process pool would
+copy every chunk's arrays (../shared/ROS2_ON_PIP.md measured a 2-process pool 2x slower
+than one thread). The calling
 thread works on the first chunk itself, so ``workers`` threads compute with ``workers - 1``
 pool threads.
 """
