@@ -63,6 +63,14 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     # few degrees off, and a twin left in a worse optimum would lose for that alone
     twins = [refiner.polish(refiner.climb(Candidate(float(score), R_k, t_k, best.hypothesis), frame, p), frame, p)
              for R_k, t_k, score in zip(R, t, pose_scores(graph, R, t, frame, p))]
+    return pick_by_evidence(best, twins, graph, frame, p)
+
+
+def pick_by_evidence(best: Candidate, twins: list[Candidate], graph: AspectGraph, frame: Frame,
+                     p: PoseParams) -> tuple[Candidate, float]:
+    """Of the pose and its refined ``twins``, the one with the most evidence on the edges
+    that tell them apart, and its margin over its strongest rival (``check_twins``; also
+    bench/flips.py's generic alternates)."""
     # a twin is a rival when it could be reported itself and did not refine back onto the pose
     # (or onto another rival)
     rivals: list[Candidate] = []
