@@ -55,13 +55,21 @@ from brepose_ros.scene_folder import load_scene  # noqa: E402
 LOSSES = ("ok", "wall", "coarse", "matching", "choice", "low")
 
 
+def refined_truth(estimator: Estimator, frame: Frame, entry) -> Candidate:
+    """The true pose refined like a hypothesis, then polished if that scores higher: the best
+    the estimator could report if its search started at the truth."""
+    refiner, p = estimator._refiner, estimator.params.pose
+    R1, t1, s1 = refiner.refined_scores(entry.R[None].astype(float), entry.t[None].astype(float), frame, p,
+                                        hypothesis_rounds(p.refine_iterations), SERIAL)
+    polished = refiner.polish(Candidate(float(s1[0]), R1[0], t1[0], None), frame, p)
+    return polished if polished.score >= s1[0] else Candidate(float(s1[0]), R1[0], t1[0], None)
+
+
 def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> dict:
     g, p, refiner, search = estimator.graph, estimator.params, estimator._refiner, estimator._search
     R0, t0 = entry.R[None].astype(float), entry.t[None].astype(float)
     truth = float(pose_scores(g, R0, t0, frame, p.pose)[0])
-    R1, t1, s1 = refiner.refined_scores(R0, t0, frame, p.pose, hypothesis_rounds(p.pose.refine_iterations), SERIAL)
-    polished = refiner.polish(Candidate(float(s1[0]), R1[0], t1[0], None), frame, p.pose)
-    refined = polished if polished.score >= s1[0] else Candidate(float(s1[0]), R1[0], t1[0], None)
+    refined = refined_truth(estimator, frame, entry)
     model_px = frame.camera.project_model(g.seg_3d[g.view_slice(g.nearest_view(refined.R, refined.t))],
                                           refined.R, refined.t)
     parts = frame.evidence.shares(model_px, p.pose.inlier_pixels, p.pose.min_margin_pixels)

@@ -236,6 +236,19 @@ def test_edge_evidence_matches_the_distance_transform_definitions(evidence_image
         assert shares.explained == pytest.approx(reference[1], abs=1e-12)
 
 
+def test_counted_pixels_are_what_the_explained_share_counts(evidence_image):
+    """The picture of a pose's counted edge pixels (bench/explained_overlay.py) holds only
+    edge pixels, and its explained ones over all counted are the explained share."""
+    edge_map, gray, models = evidence_image
+    evidence = evidence_of(edge_map, gray)
+    for model_px in models:
+        labels = evidence.counted_pixels(model_px, 2.0, MARGIN)
+        assert not (labels[edge_map == 0]).any()
+        counted = (labels > 0).sum()
+        assert counted > 0
+        assert (labels == 2).sum() / counted == evidence.shares(model_px, 2.0, MARGIN).explained
+
+
 def test_supports_of_a_batch_are_each_pose_alone(evidence_image):
     edge_map, gray, models = evidence_image
     evidence = evidence_of(edge_map, gray)

@@ -288,7 +288,8 @@ def warm_up() -> None:
                           2.0, 1.0, 0.25, np.empty((1, 2), np.float32))
     near, edges = np.zeros((8, 6, 6), np.uint8), np.zeros((4, 4), np.uint8)
     pose_evidence_kernel(segments * 3.0, near, np.zeros((8, 6, 6), np.float32), edges,
-                         np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 3.0]]), 1.0, 2, 1, np.zeros(5))
+                         np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 3.0]]), 1.0, 2, 1, np.zeros(5),
+                         np.zeros((0, 0), np.uint8))
 
 
 @njit(nogil=True, cache=True)
@@ -343,8 +344,9 @@ def _nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, i_ux: np.ndarray,
 
 @njit(nogil=True, cache=True)
 def pose_evidence_kernel(model_px: np.ndarray, near: np.ndarray, chance: np.ndarray, edges: np.ndarray,
-                         outline: np.ndarray, tolerance: float, cell: int, reach: int, out: np.ndarray) -> None:
-    """What ``scoring.EdgeEvidence.evidence`` counts for one pose, into ``out`` (5,).
+                         outline: np.ndarray, tolerance: float, cell: int, reach: int, out: np.ndarray,
+                         labels: np.ndarray) -> None:
+    """What ``scoring.EdgeEvidence.shares`` counts for one pose, into ``out`` (5,).
 
     model_px (S, 2, 2) the projected visible model segments, pixels; near (BINS, H + 2,
     W + 2) 0/1 per direction bin, within ``tolerance`` of a like edge pixel, a False border
@@ -360,6 +362,9 @@ def pose_evidence_kernel(model_px: np.ndarray, near: np.ndarray, chance: np.ndar
     length in it, or, holding none, in the cells within ``reach`` of it: where the model's
     own edges are missing, or confirmed no more than chance would (dense texture), an
     occluder may be in front, and its edges say nothing against the pose.
+
+    labels (H, W) uint8, or (0, 0) to skip: each edge pixel counted in out[3] marked 1, or 2
+    when also counted in out[4] (pictures of what the explained share counts).
     """
     out[:] = 0.0
     bins, height, width = near.shape[0], edges.shape[0], edges.shape[1]
@@ -443,3 +448,5 @@ def pose_evidence_kernel(model_px: np.ndarray, near: np.ndarray, chance: np.ndar
                 out[3] += 1.0
                 if drawn[y - y0, x - x0]:
                     out[4] += 1.0
+                if labels.shape[0] > 0:
+                    labels[y, x] = 2 if drawn[y - y0, x - x0] else 1

@@ -308,24 +308,39 @@ class EdgeEvidence:
     def shares(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float) -> "Shares":
         """The ``Shares`` of a pose's projected visible model segments ``model_px``
         (S, 2, 2), pixels (class doc)."""
-        if len(model_px) == 0:
-            return Shares(0.0, 0.0, 0.0)
-        h, w = self.shape
-        # a pose far off projects far outside: clipped a few image sizes out, the outline
-        # stays what it covers of the image
-        model_px = np.clip(np.asarray(model_px, np.float64), -4.0 * max(h, w), 5.0 * max(h, w))
-        counts = np.zeros(5)
-        pose_evidence_kernel(np.ascontiguousarray(model_px), self.near_like(tolerance_px).view(np.uint8),
-                             self.chance(tolerance_px), self.edges.view(np.uint8),
-                             self.grown_outline(model_px.reshape(-1, 2), min_margin_px), float(tolerance_px),
-                             self.SEEN_CELL, self.SEEN_REACH, counts)
-        length, confirmed, by_chance, seen_edges, explained = counts
+        length, confirmed, by_chance, seen_edges, explained = self._counts(model_px, tolerance_px, min_margin_px)
         if length <= 0:
             return Shares(0.0, 0.0, 0.0)
         surprise = length * kl_divergence(confirmed / length, by_chance / length)
         return Shares(confirmed=beyond_chance(confirmed, by_chance, length),
                       explained=float(explained / seen_edges) if seen_edges > 0 else 0.0,
                       significance=1.0 - float(np.exp(-surprise / self.SIGNIFICANT_PIXELS)))
+
+    def counted_pixels(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float) -> np.ndarray:
+        """(H, W) uint8: the edge pixels the explained share of ``shares`` counts at this pose,
+        2 where a model edge explains them, 1 where none does, 0 elsewhere (for pictures of
+        what lowers a pose's score, bench/explained_overlay.py)."""
+        labels = np.zeros(self.shape, np.uint8)
+        self._counts(model_px, tolerance_px, min_margin_px, labels)
+        return labels
+
+    def _counts(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float,
+                labels: np.ndarray | None = None) -> np.ndarray:
+        """``kernels.pose_evidence_kernel``'s five sums for one pose, all 0 for no segments;
+        the counted pixels marked in ``labels`` if given (``counted_pixels``)."""
+        counts = np.zeros(5)
+        if len(model_px) == 0:
+            return counts
+        h, w = self.shape
+        # a pose far off projects far outside: clipped a few image sizes out, the outline
+        # stays what it covers of the image
+        model_px = np.clip(np.asarray(model_px, np.float64), -4.0 * max(h, w), 5.0 * max(h, w))
+        pose_evidence_kernel(np.ascontiguousarray(model_px), self.near_like(tolerance_px).view(np.uint8),
+                             self.chance(tolerance_px), self.edges.view(np.uint8),
+                             self.grown_outline(model_px.reshape(-1, 2), min_margin_px), float(tolerance_px),
+                             self.SEEN_CELL, self.SEEN_REACH, counts,
+                             np.zeros((0, 0), np.uint8) if labels is None else labels)
+        return counts
 
     def chance(self, tolerance_px: float) -> np.ndarray:
         """(BINS, H + 2, W + 2) float32: per direction bin, the chance that a model point of
