@@ -51,7 +51,7 @@ STEPS = [
     ("matching", "compiled align (Kuhn-Munkres, similarity, 2D ICP, coverage)", "align", "matching.py"),
     ("refinement", "line rounds", "refine", "refinement.py"),
     ("refinement", "Gauss-Newton", "refine_poses", "refinement.py"),
-    ("refinement", "polish pairing", "polish_pose", "refinement.py"),
+    ("refinement", "edge-pixel pairing", "align_on_edges", "refinement.py"),
     ("refinement", "score", "pose_scores", "scoring.py"),
     ("refinement", "twins", "check_twins", "symmetry.py"),
     ("refinement", "error ratio", "edge_pairs", "scoring.py"),

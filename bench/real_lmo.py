@@ -177,7 +177,7 @@ def refined_from_near_truth(refiner: PoseRefiner, target: Target, frame: Frame, 
         rng.normal(size=3))
     R = turn @ target.R
     R, t, scores = refiner.refined_scores(R[None], (center - R @ graph.model_center)[None], frame, params.pose,
-                                          hypothesis_rounds(params.pose.refine_iterations), SERIAL)
+                                          hypothesis_rounds(params.pose.refine_iterations), SERIAL, align=True)
     climbed = refiner.climb(Candidate(float(scores[0]), R[0], t[0], None), frame, params.pose)
     polished = refiner.polish(climbed, frame, params.pose)
     return [(R[0], t[0]), (climbed.R, climbed.t), (polished.R, polished.t)]

@@ -215,8 +215,10 @@ class Estimator:
                 coarse = search.coarse(frame, p.search, pool)
                 clock = _lap(timings, "search", clock)
             if stage == "search":
+                # not aligned on edge pixels: the search's many coarse templates, aligned, fit
+                # clutter and occluders as well as a 30 % hidden part (docs/results/refinement.md)
                 candidates += self._refiner.verify(search.best(coarse, frame, p.search.hypotheses, p.search), frame,
-                                                   p.pose, pool)
+                                                   p.pose, pool, align=False)
                 clock = _lap(timings, "refinement", clock)
             elif stage == "windows":
                 windows = [segments_within(frame, center, p.search.seed_window * size / 2)

@@ -25,12 +25,21 @@ wrong), and the score, counted on edge pixels, mostly tells that step from a goo
 (docs/results/real_lmo.md). Two checks rather than one per round: scoring is most of the
 refinement's time.
 
+A hypothesis's first pose is often 5-15 degrees off, farther from many of its image lines
+than the wide rounds' pairs reach (16 px). So each hypothesis is also aligned on the Canny
+edge pixels first (``align_on_edges``: points along the visible model edges pair with the
+nearest edge pixel of like direction within a radius that starts at a fifth of the part's
+projected size and halves down to the final tolerance, ``coarse_to_fine_radii``), then
+goes through the same guarded rounds, and the better-scoring of the two ends is kept
+(``PoseRefiner.refined_scores``; docs/results/refinement.md).
+
 The chosen pose then climbs over neighbouring views of the graph (``PoseRefiner.climb``)
-and is polished on the Canny edge pixels (``polish_pose``), which hear edges the line
-detector missed.
+and is polished on the Canny edge pixels at the final tolerance (``align_on_edges``), which
+hear edges the line detector missed; the polish is kept unless the score clearly drops.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,7 +52,7 @@ from .frame import Frame
 from .hypotheses import Hypothesis
 from .kernels import refine_poses_kernel, refine_rounds_kernel
 from .lines2d import NEAREST_MAX_ANGLE_DEG, cos_deg, line_equations, samples_along
-from .scoring import CLEAR_SCORE, EdgeEvidence, pose_scores
+from .scoring import CLEAR_SCORE, pose_scores
 from .workers import SERIAL, WorkerPool
 
 
@@ -62,23 +71,37 @@ SETTLE_ROUNDS = (1.0,)
 ROUGH_ITERATIONS = 3
 FINE_ITERATIONS = 8
 
-#: the polish on edge pixels (``polish_pose``): the line refinement leaves the pose within a
-#: few pixels, which 3 rounds of re-pairing (3 Gauss-Newton steps each) close
+#: the alignment on edge pixels (``align_on_edges``) that opens a hypothesis's refinement:
+#: its first pairing radius is the power of 2 times ``pose.inlier_pixels`` at least this
+#: share of the pose's projected diagonal, halving down to ``pose.inlier_pixels``,
+#: ``ALIGN_PASSES`` pairings per radius. A start 15 degrees off lies up to about a tenth of
+#: the diagonal from its edges; from the truth turned 15 degrees and moved 5 % of the
+#: diameter the line rounds alone brought 4 of 72 starts within the success bounds, with
+#: this alignment first 47 (one pairing per radius: about 36; docs/results/refinement.md)
+ALIGN_FIRST_RADIUS = 0.2
+ALIGN_PASSES = 2
+#: the polish on edge pixels: the line refinement leaves the pose within a few pixels, which
+#: 3 pairings at ``pose.inlier_pixels`` close
 POLISH_ROUNDS = 3
+#: the polish is kept unless the score drops by more than this: a drop that large means it
+#: pulled the pose onto soft or biased edges, while a smaller one is the score's pixel noise
+#: in depth on a small part, where the polish, not the score, pins the depth (from the truth
+#: of 80 bench images: 77 right after the line rounds, 69 after an unguarded polish, 75 with
+#: no drop allowed, 73 with 0.02; the small-part test's scene 2, 3 and 3 of 6)
+POLISH_SCORE_SLACK = 0.02
 #: a point every 3 pixels along the model edges: closer points would pair with the same
 #: edge pixels and only weigh that stretch of edge more
-POLISH_SPACING_PIXELS = 3.0
-#: Huber threshold: edge pixels sit on the integer grid, so residuals up to about a pixel
-#: are quantisation, not outliers
-POLISH_HUBER_PIXELS = 1.0
+EDGE_SPACING_PIXELS = 3.0
+#: Gauss-Newton steps per pairing on edge pixels
+EDGE_ITERATIONS = 3
 #: fewer paired edge points than this do not pin a pose (and suggest a pose off the part)
-MIN_POLISH_POINTS = 12
+MIN_EDGE_POINTS = 12
 
-#: weight of a model edge in the polish by kind (sharp, outline, smooth): the silhouette of
+#: weight of a model edge on edge pixels by kind (sharp, outline, smooth): the silhouette of
 #: a curved face is a soft edge, whose image lies about 8 times farther from it than from a
 #: sharp edge; at 0.3 outlines still pin parts made mostly of them (docs/DECISIONS.md).
 #: Smooth edges (graphs compiled with --smooth) share the outlines' weight, unmeasured
-POLISH_KIND_WEIGHTS = np.array([1.0, 0.3, 0.3])
+EDGE_KIND_WEIGHTS = np.array([1.0, 0.3, 0.3])
 
 #: refined poses closer than this (rotation, and translation in part diameters) are one
 #: pose: below the graph's view spacing and well below a success's translation bound
@@ -156,36 +179,83 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
     return R, t
 
 
-def polish_pose(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, *, weights: np.ndarray, evidence: EdgeEvidence,
-                camera: Camera, radius_px: float, rounds: int, spacing_px: float, f_scale: float,
-                iterations: int, covariance_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Refine one pose on the Canny edge pixels rather than on the Hough lines.
+def align_on_edges(R: np.ndarray, t: np.ndarray, graph: AspectGraph, frame: Frame, *, radii: np.ndarray,
+                   covariance_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Refine B poses R (B, 3, 3), t (B, 3) on the Canny edge pixels rather than on the
+    Hough lines: pairing k of pose b within ``radii[b, k]`` pixels (0: pose b skips it);
+    returns new arrays.
 
-    Points every ``spacing_px`` along the projected model segments (M, 2, 3) are paired
-    with their nearest like-oriented edge pixel within ``radius_px``
+    Points every ``EDGE_SPACING_PIXELS`` along the model segments visible at the pose are
+    paired with their nearest like-oriented edge pixel within the radius
     (``EdgeEvidence.nearest_edges``) and pulled onto the line through it along the model
-    edge, weighted by ``weights`` (M,) per segment; re-paired each round. Every projected
-    edge speaks, where the line refinement only hears edges the line detector found
-    (6-12 on the rounded bracket, whose arcs and holes give no Hough lines).
-    ``covariance_out`` (1, 6, 6) receives the covariance of the last step (``refine_poses``).
+    edge (Huber at half the radius: farther pairs are as likely wrong), weighted by the
+    segment's kind (``EDGE_KIND_WEIGHTS``); ``EDGE_ITERATIONS`` Gauss-Newton steps per
+    pairing. Every projected edge speaks, where the line refinement only hears edges the
+    line detector found (6-12 on the rounded bracket, whose arcs and holes give no Hough
+    lines). The poses pair together and refine in one call per radius (a pose refines to
+    the same bits alone or in a batch). A pose with fewer than ``MIN_EDGE_POINTS`` pairs,
+    or behind the camera, stops where it is. ``covariance_out`` (B, 6, 6) receives each
+    pose's covariance of its last step (``refine_poses``).
     """
-    for _ in range(rounds):
-        ends_px = camera.project_model(model_3d, R, t)
-        delta = ends_px[:, 1] - ends_px[:, 0]
-        lengths = np.maximum(np.hypot(delta[:, 0], delta[:, 1]), 1e-12)
-        segment, frac = samples_along(np.maximum((lengths // spacing_px).astype(int), 1))
-        points = model_3d[segment, 0] + frac[:, None] * (model_3d[segment, 1] - model_3d[segment, 0])
-        edge, found = evidence.nearest_edges(camera.project_model(points, R, t),
-                                             evidence.orientation_bin(ends_px)[segment], radius_px)
-        if found.sum() < MIN_POLISH_POINTS:
-            break
-        direction = (delta / lengths[:, None])[segment[found]]
+    camera, evidence = frame.camera, frame.evidence
+    R, t = np.array(R, dtype=float), np.array(t, dtype=float)
+    going = np.ones(len(R), bool)
+    for k in range(radii.shape[1]):
+        going &= (np.einsum("bij,j->bi", R, graph.model_center) + t)[:, 2] > 0
+        poses, points, points_px, bins, directions, weights = [], [], [], [], [], []
+        for b in np.nonzero(going & (radii[:, k] > 0))[0]:
+            segments = graph.visible_segments(R[b], t[b])
+            model_3d = graph.seg_3d[segments]
+            ends_px = camera.project_model(model_3d, R[b], t[b])
+            delta = ends_px[:, 1] - ends_px[:, 0]
+            lengths = np.maximum(np.hypot(delta[:, 0], delta[:, 1]), 1e-12)
+            segment, frac = samples_along(np.maximum((lengths // EDGE_SPACING_PIXELS).astype(int), 1))
+            points.append(model_3d[segment, 0] + frac[:, None] * (model_3d[segment, 1] - model_3d[segment, 0]))
+            points_px.append(camera.project_model(points[-1], R[b], t[b]))
+            bins.append(evidence.orientation_bin(ends_px)[segment])
+            directions.append((delta / lengths[:, None])[segment])
+            weights.append(EDGE_KIND_WEIGHTS[graph.seg_kind[segments][segment]])
+            poses.append(np.full(len(segment), b))
+        if not poses:
+            continue
+        pose_of = np.concatenate(poses)
+        edge, found = evidence.nearest_edges(np.concatenate(points_px), np.concatenate(bins), radii[pose_of, k])
+        paired = np.unique(pose_of)
+        going[paired] &= np.bincount(pose_of[found], minlength=len(R))[paired] >= MIN_EDGE_POINTS
+        found &= going[pose_of]
+        direction = np.concatenate(directions)[found]
         lines = camera.undistort(np.stack([edge[found] - direction, edge[found] + direction], axis=1))
-        R, t = refine_poses(R[None], t[None], points[found][:, None], lines, np.array([0, found.sum()]),
-                            f_scale=f_scale, iterations=iterations, weights=weights[segment[found]],
-                            covariance_out=covariance_out)
-        R, t = R[0], t[0]
+        points, weights, pose_of = np.concatenate(points)[found], np.concatenate(weights)[found], pose_of[found]
+        for radius in np.unique(radii[pose_of, k]):  # one Huber threshold per call
+            group = np.unique(pose_of[radii[pose_of, k] == radius])
+            pairs = np.isin(pose_of, group)
+            spans = np.concatenate([[0], np.cumsum(np.bincount(np.searchsorted(group, pose_of[pairs]),
+                                                              minlength=len(group)))])
+            covariance = None if covariance_out is None else covariance_out[group]
+            R[group], t[group] = refine_poses(R[group], t[group], points[pairs][:, None], lines[pairs], spans,
+                                              f_scale=0.5 * radius / camera.focal, iterations=EDGE_ITERATIONS,
+                                              weights=weights[pairs], covariance_out=covariance)
+            if covariance_out is not None:
+                covariance_out[group] = covariance
     return R, t
+
+
+def coarse_to_fine_radii(graph: AspectGraph, R: np.ndarray, t: np.ndarray, camera: Camera,
+                         inlier_px: float) -> np.ndarray:
+    """(B, K) pairing radii of B starts' edge alignment, pixels: per pose ``inlier_px``
+    times the powers of 2 from the one at least ``ALIGN_FIRST_RADIUS`` of the pose's
+    projected diagonal down to 1, ``ALIGN_PASSES`` pairings each, the poses' schedules
+    ending together (0 where a smaller pose's begins later). Powers of 2 keep the radii
+    of a pairing few, so the poses refine in a few calls."""
+    halvings = np.zeros(len(R), int)
+    for b, view in enumerate(graph.nearest_views(R, t)):
+        if (R[b] @ graph.model_center + t[b])[2] > 0:
+            ends_px = camera.project_model(graph.seg_3d[graph.view_slice(view)], R[b], t[b]).reshape(-1, 2)
+            diagonal = float(np.hypot(*np.ptp(ends_px, axis=0))) if len(ends_px) else 0.0
+            halvings[b] = int(np.ceil(np.log2(max(ALIGN_FIRST_RADIUS * diagonal / inlier_px, 1.0))))
+    steps = np.arange(halvings.max(initial=0), -1, -1)
+    radii = np.where(steps[None] <= halvings[:, None], inlier_px * 2.0 ** steps[None], 0.0)
+    return np.repeat(radii, ALIGN_PASSES, axis=1)
 
 
 def hypothesis_rounds(count: int) -> tuple[float, ...]:
@@ -203,37 +273,61 @@ class PoseRefiner:
         self.neighbours = nearest_neighbours(graph.view_directions, NEIGHBOURS)
 
     def verify(self, hypotheses: list[Hypothesis], frame: Frame, p: PoseParams,
-               pool: WorkerPool = SERIAL) -> list[Candidate]:
-        """The first poses of the hypotheses, refined together against the image lines, and
-        their scores."""
+               pool: WorkerPool = SERIAL, align: bool = True) -> list[Candidate]:
+        """The first poses of the hypotheses refined against the image lines, with ``align``
+        also after an alignment on the edge pixels from wide to fine (``refined_scores``),
+        and their scores."""
         if not hypotheses:
             return []
         g = self.graph
         first = [pose_from_similarity(g.view_rotations[h.view], g.model_center, scale=h.scale, phi=h.phi,
                                       shift=h.shift, R_align=h.region.R_align) for h in hypotheses]
         R, t, scores = self.refined_scores(np.array([R for R, _ in first]), np.array([t for _, t in first]), frame,
-                                           p, hypothesis_rounds(p.refine_iterations), pool)
+                                           p, hypothesis_rounds(p.refine_iterations), pool, align=align)
         return [Candidate(float(scores[j]), R[j], t[j], h) for j, h in enumerate(hypotheses)]
 
     def refined_scores(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams, rounds: tuple[float, ...],
-                       pool: WorkerPool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       pool: WorkerPool, align: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``refine`` and ``pose_scores`` of B poses in two stages, the wide rounds and then
         those at the final tolerance: a pose keeps a stage's result only if it scores no
-        lower (module doc). The poses are split between the ``pool``'s threads: each pose
-        refines and scores to the same bits alone or in a batch."""
+        lower (module doc). With ``align`` each pose also goes through the same stages after
+        its coarse-to-fine alignment on edge pixels (``align``, kept likewise) and keeps the
+        better-scoring of the two ends: the alignment brings far starts in, but it can settle
+        a near start at the wrong depth where the line rounds alone would not (the sharp
+        bracket's clutter image 4: 8 mm deep, docs/results/refinement.md). The poses are
+        split between the ``pool``'s threads: each pose refines and scores to the same bits
+        alone or in a batch."""
+        lines = [lambda R_c, t_c, stage=stage: self.refine(R_c, t_c, frame, p, stage)
+                 for stage in (tuple(f for f in rounds if f > 1), tuple(f for f in rounds if f <= 1)) if stage]
+
+        def staged(R_c: np.ndarray, t_c: np.ndarray, scores: np.ndarray, stages: list) -> tuple[np.ndarray, ...]:
+            R_c, t_c, scores = R_c.copy(), t_c.copy(), scores.copy()
+            for stage in stages:
+                R_n, t_n = stage(R_c, t_c)
+                new = pose_scores(self.graph, R_n, t_n, frame, p)
+                kept = new >= scores
+                R_c[kept], t_c[kept], scores[kept] = R_n[kept], t_n[kept], new[kept]
+            return R_c, t_c, scores
+
         def chunk(which: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             R_c, t_c = np.array(R[which], dtype=float), np.array(t[which], dtype=float)
-            scores = pose_scores(self.graph, R_c, t_c, frame, p)
-            for stage in (tuple(f for f in rounds if f > 1), tuple(f for f in rounds if f <= 1)):
-                if stage:
-                    R_n, t_n = self.refine(R_c, t_c, frame, p, stage)
-                    new = pose_scores(self.graph, R_n, t_n, frame, p)
-                    kept = new >= scores
-                    R_c[kept], t_c[kept], scores[kept] = R_n[kept], t_n[kept], new[kept]
+            start = pose_scores(self.graph, R_c, t_c, frame, p)
+            R_c, t_c, scores = staged(R_c, t_c, start, lines)
+            if align:
+                R_a, t_a, aligned = staged(np.array(R[which], dtype=float), np.array(t[which], dtype=float), start,
+                                           [lambda R_s, t_s: self.align(R_s, t_s, frame, p)] + lines)
+                better = aligned > scores
+                R_c[better], t_c[better], scores[better] = R_a[better], t_a[better], aligned[better]
             return R_c, t_c, scores
 
         parts = pool.map(chunk, pool.split(len(R)))
         return tuple(np.concatenate([part[k] for part in parts]) for k in range(3))
+
+    def align(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams) -> tuple[np.ndarray, np.ndarray]:
+        """B poses (B, 3, 3), (B, 3) aligned on the edge pixels with radii from wide to
+        ``pose.inlier_pixels`` (``align_on_edges``, ``coarse_to_fine_radii``); new arrays."""
+        return align_on_edges(R, t, self.graph, frame,
+                              radii=coarse_to_fine_radii(self.graph, R, t, frame.camera, p.inlier_pixels))
 
     def best(self, candidates: list[Candidate], frame: Frame, p: PoseParams, pool: WorkerPool = SERIAL) -> Candidate:
         """The best pose of the candidates: the distinct best ones climbed over neighbouring
@@ -278,16 +372,18 @@ class PoseRefiner:
         return Candidate(score, R[0], t[0], best.hypothesis) if score >= best.score else best
 
     def polish(self, best: Candidate, frame: Frame, p: PoseParams) -> Candidate:
-        """The chosen pose refined on edge pixels (``polish_pose``) and scored again."""
-        g, segments = self.graph, self.graph.visible_segments(best.R, best.t)
+        """The chosen pose refined on edge pixels at the final radius (``align_on_edges``),
+        kept unless its score drops by more than ``POLISH_SCORE_SLACK``: on soft outlines
+        (a curved part's silhouette under lights near the camera) the edge pixels lie inside
+        the geometric outline and pull a right pose too far. The covariance is the polish's
+        last step's either way: the two poses lie within a pixel or so."""
         covariance = np.full((1, 6, 6), np.nan)
-        R, t = polish_pose(best.R, best.t, g.seg_3d[segments], weights=POLISH_KIND_WEIGHTS[g.seg_kind[segments]],
-                           evidence=frame.evidence, camera=frame.camera, radius_px=p.inlier_pixels,
-                           rounds=POLISH_ROUNDS, spacing_px=POLISH_SPACING_PIXELS,
-                           f_scale=POLISH_HUBER_PIXELS / frame.camera.focal, iterations=ROUGH_ITERATIONS,
-                           covariance_out=covariance)
-        return Candidate(float(pose_scores(g, R[None], t[None], frame, p)[0]), R, t, best.hypothesis,
-                         covariance[0] if np.isfinite(covariance).all() else None)
+        R, t = align_on_edges(best.R[None], best.t[None], self.graph, frame,
+                              radii=np.full((1, POLISH_ROUNDS), p.inlier_pixels), covariance_out=covariance)
+        R, t = R[0], t[0]
+        score = float(pose_scores(self.graph, R[None], t[None], frame, p)[0])
+        kept = Candidate(score, R, t, best.hypothesis) if score >= best.score - POLISH_SCORE_SLACK else best
+        return dataclasses.replace(kept, covariance=covariance[0] if np.isfinite(covariance).all() else None)
 
     def refine(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams,
                rounds: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
