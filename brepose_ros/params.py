@@ -122,9 +122,9 @@ class MatchParams(Ranged):
         "best-covered (view, rotation) hypotheses per region turned into poses and verified", 6, 1, 64)
     workers: int = doc(
         "worker threads sharing one image's work (the pre-filter's views, the matching jobs, the poses refined "
-        "and scored); 0 = one per CPU core. Default 1: on 2 cores 2 threads were not clearly faster than 1 "
-        "(bench/latency.py: 0.92x clean, 1.08x occluded with the matching compiled, one core busy with other "
-        "work; docs/results/latency.md)", 1, 0, 16)
+        "and scored); 0 = one per CPU core. Default 1: on 2 cores 2 threads measured 1.06x clean and 1.26x "
+        "occluded with a mostly free second core, 0.87-1.11x with one core busy with other work "
+        "(bench/latency.py, docs/results/latency.md)", 1, 0, 16)
 
 
 @dataclass(frozen=True)
