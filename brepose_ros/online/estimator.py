@@ -18,9 +18,11 @@ Each stage lives in its own module; this one only wires them:
 4. ``refinement``: a first metric pose per hypothesis, refined on the image lines and
    scored on the edge pixels (``scoring``); the best climbed over neighbouring views and
    polished on the edge pixels
-5. ``symmetry``: the pose against its twins under the part's near symmetries, on the
+5. ``larger``: a pose scoring below ``search.enough_score`` against larger poses about its
+   place, searched again (``pose.larger_check``)
+6. ``symmetry``: the pose against its twins under the part's near symmetries, on the
    edges that tell them apart; ambiguous when the image cannot decide
-6. ``scoring``: found if the score passes ``pose.min_score``; the error ratio at the pose
+7. ``scoring``: found if the score passes ``pose.min_score``; the error ratio at the pose
 
 ``estimate(..., paper_only=True)`` stops after step 3, as the seed paper does (section 6):
 the bipartite matching's best-covered hypothesis over all regions, its view turned into a
@@ -46,6 +48,7 @@ from ..camera import Camera
 from ..params import EstimatorParams, SearchParams
 from .frame import Frame
 from .hypotheses import TetradHypotheses, best_per_region
+from .larger import larger_pose
 from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
@@ -170,6 +173,9 @@ class Estimator:
         if best is None:
             best = self._refiner.best(candidates, frame, p.pose, pool)
             clock = _lap(timings, "refinement", clock)
+        if p.pose.larger_check and search is not None and best.score < p.search.enough_score:
+            best = larger_pose(best, self.graph, frame, p, search, hypotheses, self._refiner, pool)
+            clock = _lap(timings, "larger", clock)
         margin = None
         if p.pose.twin_check:
             best, margin = check_twins(best, self.graph, self._refiner, frame, p.pose)

@@ -129,11 +129,17 @@ class ResponseMaps:
     bounds: np.ndarray
 
     @classmethod
-    def of(cls, evidence: EdgeEvidence, factor: int, spread: int, pad: int) -> "ResponseMaps":
+    def of(cls, evidence: EdgeEvidence, factor: int, spread: int, pad: int,
+           box: tuple[int, int, int, int] | None = None) -> "ResponseMaps":
+        """The maps of the edge pixels, only those within ``box`` (x0, y0, x1, y1 pixels) if given."""
         h, w = evidence.shape
         hc, wc = -(-h // factor), -(-w // factor)
         pooled = np.zeros((BINS, hc * factor, wc * factor), np.uint8)
-        pooled[:, :h, :w] = evidence.like_edges
+        if box is None:
+            pooled[:, :h, :w] = evidence.like_edges
+        else:
+            x0, y0, x1, y1 = box
+            pooled[:, y0:y1, x0:x1] = evidence.like_edges[:, y0:y1, x0:x1]
         pooled = pooled.reshape(BINS, hc, factor, wc, factor).max(axis=(2, 4))
         kernel = np.ones((2 * spread + 1, 2 * spread + 1), np.uint8)
         maps = np.zeros((BINS, hc + 2 * pad, wc + 2 * pad), np.uint8)
@@ -340,14 +346,17 @@ class TemplateSearch:
         k = lib.n_points
         return dx.reshape(-1, k), dy.reshape(-1, k), np.ascontiguousarray(bins).reshape(-1, k)
 
-    def coarse(self, frame: Frame, p: SearchParams, pool: WorkerPool = SERIAL) -> "CoarseResult":
+    def coarse(self, frame: Frame, p: SearchParams, pool: WorkerPool = SERIAL, sizes: np.ndarray | None = None,
+               box: tuple[int, int, int, int] | None = None) -> "CoarseResult":
         """Every coarse template's best score and position in the image (module doc, step 3);
-        the templates are split into one chunk per worker thread (the kernel releases the GIL)."""
+        the templates are split into one chunk per worker thread (the kernel releases the GIL).
+        ``sizes`` (pixels, ascending) replace the parameters' and ``box`` (x0, y0, x1, y1
+        pixels) keeps only its edge pixels: a search about one place (``larger``)."""
         lib = self.library
         factor = p.coarse_factor
-        sizes = self.sizes(frame, p)
+        sizes = self.sizes(frame, p) if sizes is None else sizes
         pad = int(np.ceil(sizes[-1] / factor / 2)) + p.spread + 1
-        maps = ResponseMaps.of(frame.evidence, factor, p.spread, pad)
+        maps = ResponseMaps.of(frame.evidence, factor, p.spread, pad, box)
         chance = np.stack([maps.chance(max(3, int(round(d / factor)) | 1)) for d in sizes])
         views = lib.coarse_views
         angles = np.arange(p.angles) * (2 * np.pi / p.angles)
