@@ -104,6 +104,9 @@ def main(argv=None) -> int:
                           f"{on['score']:.2f} depth x{on['depth'] or 0:.2f} (check {on['check_ms']:.0f} ms)",
                           flush=True)
             rows.append(row)
+            out = cache / "results" / f"depth_{args.label}.json"  # after every row: a killed run keeps its rows
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps({"rows": rows, "images": records}, indent=1, default=float) + "\n")
         estimator.close()
     print("\n| part | condition | images | right: off / on | wrong (off) | of them at another depth | "
           "made / broken | ms per image (median): off / on | check ms (median, where run) |")
@@ -122,10 +125,7 @@ def main(argv=None) -> int:
           f"{total['other_depth']} | {total['made']} / {total['broken']} | "
           f"{median([m for r in rows for m in r['ms_off']])} / {median([m for r in rows for m in r['ms_on']])} | "
           f"{median([m for r in rows for m in r['check_ms']])} |")
-    out = cache / "results" / f"depth_{args.label}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"rows": rows, "images": records}, indent=1, default=float) + "\n")
-    print(f"\nwrote {out}", file=sys.stderr)
+    print(f"\nwrote {cache / 'results' / f'depth_{args.label}.json'}", file=sys.stderr)
     return 0
 
 

@@ -154,8 +154,8 @@ class PoseParams(Ranged):
     larger_check: bool = doc(
         "when the final pose scores below search.enough_score, search again about its place for larger poses "
         "(``online/larger.py``: a shrunken, turned copy of the part lying on its own edges) and keep one that "
-        "scores more (docs/results/depth.md: right poses 67 -> 73 of 160 clean and clutter images of the ten bench "
-        "parts, none lost, at 1.46x the median time)", True)
+        "scores more. Off: on main 75528d7 it righted 2 of 160 clean and clutter images of the ten bench parts "
+        "(both on tuning parts, none on leave-out, none lost) at 1.35x the median time (docs/results/depth.md)", False)
     twin_margin: float = doc(
         "a pose whose evidence over its best twin (difference of the shares of their distinguishing edges the "
         "image confirms) is below this is reported ambiguous", 0.2, 0.0, 1.0)

@@ -19,7 +19,7 @@ Each stage lives in its own module; this one only wires them:
    scored on the edge pixels (``scoring``); the best climbed over neighbouring views and
    polished on the edge pixels
 5. ``larger``: a pose scoring below ``search.enough_score`` against larger poses about its
-   place, searched again (``pose.larger_check``)
+   place, searched again (``pose.larger_check``, off by default)
 6. ``symmetry``: the pose against its twins under the part's near symmetries, on the
    edges that tell them apart; ambiguous when the image cannot decide
 7. ``scoring``: found if the score passes ``pose.min_score``; the error ratio at the pose

@@ -5,10 +5,11 @@ turned by 100-180 degrees with the part's centre 1.25-3.4x as far as the truth's
 turned and shrunk, lies on some of the real part's edges (docs/results/symmetry.md). This
 check searches again about the chosen pose's place for larger poses only: the template
 search (``search``) on the edge pixels within a box about the pose's projected centre, at
-part sizes 1.25-3.5x its projected size, its best templates matched by Kuhn-Munkres as seeds
-(``TetradHypotheses.at_seeds``, as the estimator's ``seeded`` generator does); those that
-refine to a pose nearer than the chosen one are climbed and polished, and the best replaces
-the chosen pose if it scores more.
+part sizes 1.25-3.8x its projected size (up to the search's largest), its best templates
+matched by Kuhn-Munkres as seeds (``TetradHypotheses.at_seeds``, as the estimator's
+``seeded`` generator does), the best of those refined also moved along their line of sight
+(``depth_sweep``); those nearer than the chosen pose are climbed and polished, and the best
+replaces it if it is still nearer and scores more.
 """
 from __future__ import annotations
 
@@ -61,11 +62,20 @@ def projected_place(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: Fra
 def larger_pose(best: Candidate, graph: AspectGraph, frame: Frame, p: EstimatorParams, search: TemplateSearch,
                 hypotheses: TetradHypotheses, refiner: PoseRefiner, pool: WorkerPool = SERIAL) -> Candidate:
     """``best``, or a larger pose about its place that scores more (module doc)."""
+    if (best.R @ graph.model_center + best.t)[2] <= 0:
+        return best
     centre, size = projected_place(graph, best.R, best.t, frame)
+    # no larger than the search's own largest size: a pose very near the camera (a not-found
+    # image's best) would otherwise ask for templates, and maps padded for them, of many
+    # thousands of pixels (one such image took 24 GB)
+    sizes = size * SIZE_RATIOS
+    sizes = sizes[sizes <= TemplateSearch.sizes(frame, p.search)[-1]]
+    if not len(sizes):
+        return best
     h, w = frame.evidence.shape
     x0, y0 = np.clip(np.floor(centre - BOX_HALF_WIDTH * size), 0, [w, h]).astype(int)
     x1, y1 = np.clip(np.ceil(centre + BOX_HALF_WIDTH * size), 0, [w, h]).astype(int)
-    coarse = search.coarse(frame, p.search, pool, sizes=size * SIZE_RATIOS, box=(x0, y0, x1, y1))
+    coarse = search.coarse(frame, p.search, pool, sizes=sizes, box=(x0, y0, x1, y1))
     seeds = search.best(coarse, frame, SEEDS, p.search)
     matched = hypotheses.at_seeds(seeds, frame, p.search.seed_window, p.matching, pool)
     best_covered = sorted(matched, key=lambda hyp: -hyp.coverage)[:p.search.hypotheses]
