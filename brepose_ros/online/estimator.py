@@ -235,7 +235,7 @@ class Estimator:
                 matched = hypotheses.at_seeds(seeds, frame, p.search.seed_window, p.matching, pool)
                 clock = _lap(timings, "matching", clock)
                 best_covered = sorted(matched, key=lambda h: -h.coverage)[:p.search.hypotheses]
-                candidates += self._refiner.verify(best_covered, frame, p.pose, pool)
+                candidates += self._refiner.verify(best_covered, frame, p.pose, pool, enough=p.search.enough_score)
                 clock = _lap(timings, "refinement", clock)
             else:
                 candidates, clock = self._tetrads(frame, [groups[:1], groups[1:]], p, hypotheses, pool, timings,
@@ -259,7 +259,7 @@ class Estimator:
             matched = hypotheses.match(jobs, p.matching, pool)
             clock = _lap(timings, "matching", clock)
             candidates = candidates + self._refiner.verify(best_per_region(matched, p.matching.hypotheses), frame,
-                                                           p.pose, pool)
+                                                           p.pose, pool, enough=p.search.enough_score)
             clock = _lap(timings, "refinement", clock)
         return candidates, clock
 

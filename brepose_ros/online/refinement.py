@@ -286,28 +286,31 @@ class PoseRefiner:
         self.neighbours = nearest_neighbours(graph.view_directions, NEIGHBOURS)
 
     def verify(self, hypotheses: list[Hypothesis], frame: Frame, p: PoseParams,
-               pool: WorkerPool = SERIAL, align: bool = True) -> list[Candidate]:
+               pool: WorkerPool = SERIAL, align: bool = True, enough: float = np.inf) -> list[Candidate]:
         """The first poses of the hypotheses refined against the image lines, with ``align``
-        also after an alignment on the edge pixels from wide to fine (``refined_scores``),
-        and their scores."""
+        also after an alignment on the edge pixels from wide to fine unless a line end already
+        scores ``enough`` (``refined_scores``), and their scores."""
         if not hypotheses:
             return []
         g = self.graph
         first = [pose_from_similarity(g.view_rotations[h.view], g.model_center, scale=h.scale, phi=h.phi,
                                       shift=h.shift, R_align=h.region.R_align) for h in hypotheses]
         R, t, scores = self.refined_scores(np.array([R for R, _ in first]), np.array([t for _, t in first]), frame,
-                                           p, hypothesis_rounds(p.refine_iterations), pool, align=align)
+                                           p, hypothesis_rounds(p.refine_iterations), pool, align=align,
+                                           enough=enough)
         return [Candidate(float(scores[j]), R[j], t[j], h) for j, h in enumerate(hypotheses)]
 
     def refined_scores(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams, rounds: tuple[float, ...],
-                       pool: WorkerPool, align: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       pool: WorkerPool, align: bool = False,
+                       enough: float = np.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``refine`` and ``pose_scores`` of B poses in two stages, the wide rounds and then
         those at the final tolerance: a pose keeps a stage's result only if it scores no
         lower (module doc). With ``align`` each pose also goes through the same stages after
         its coarse-to-fine alignment on edge pixels (``align``, kept likewise) and keeps the
         aligned end if it scores ``ALIGN_MIN_GAIN`` higher: the alignment brings far starts in, but it can settle
         a near start at the wrong depth where the line rounds alone would not (the sharp
-        bracket's clutter image 4: 8 mm deep, docs/results/refinement.md). The poses are
+        bracket's clutter image 4: 8 mm deep, docs/results/refinement.md); not if some line end
+        already scores ``enough``. The poses are
         split between the ``pool``'s threads: each pose refines and scores to the same bits
         alone or in a batch."""
         lines = [lambda R_c, t_c, stage=stage: self.refine(R_c, t_c, frame, p, stage)
@@ -322,19 +325,24 @@ class PoseRefiner:
                 R_c[kept], t_c[kept], scores[kept] = R_n[kept], t_n[kept], new[kept]
             return R_c, t_c, scores
 
-        def chunk(which: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            R_c, t_c = np.array(R[which], dtype=float), np.array(t[which], dtype=float)
-            start = pose_scores(self.graph, R_c, t_c, frame, p)
-            R_c, t_c, scores = staged(R_c, t_c, start, lines)
-            if align:
-                R_a, t_a, aligned = staged(np.array(R[which], dtype=float), np.array(t[which], dtype=float), start,
-                                           [lambda R_s, t_s: self.align(R_s, t_s, frame, p)] + lines)
-                better = aligned > scores + ALIGN_MIN_GAIN
-                R_c[better], t_c[better], scores[better] = R_a[better], t_a[better], aligned[better]
-            return R_c, t_c, scores
+        def batch(stages: list, start: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+            def chunk(which: slice) -> tuple[np.ndarray, ...]:
+                R_c, t_c = np.array(R[which], dtype=float), np.array(t[which], dtype=float)
+                first = pose_scores(self.graph, R_c, t_c, frame, p) if start is None else start[which]
+                return (*staged(R_c, t_c, first, stages), first)
+            parts = pool.map(chunk, pool.split(len(R)))
+            return tuple(np.concatenate([part[k] for part in parts]) for k in range(4))
 
-        parts = pool.map(chunk, pool.split(len(R)))
-        return tuple(np.concatenate([part[k] for part in parts]) for k in range(3))
+        R_l, t_l, scores, start = batch(lines)
+        # a batch whose line ends already hold a pose scoring ``enough`` (the estimator's
+        # search.enough_score, past which it looks for no other pose) is not aligned: the
+        # starts it rescues come from batches whose line ends all score low, and on the tuning
+        # images no batch above it owed a success to it (docs/results/refinement.md)
+        if align and len(scores) and scores.max() < enough:
+            R_a, t_a, aligned, _ = batch([lambda R_s, t_s: self.align(R_s, t_s, frame, p)] + lines, start)
+            better = aligned > scores + ALIGN_MIN_GAIN
+            R_l[better], t_l[better], scores[better] = R_a[better], t_a[better], aligned[better]
+        return R_l, t_l, scores
 
     def align(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams) -> tuple[np.ndarray, np.ndarray]:
         """B poses (B, 3, 3), (B, 3) aligned on the edge pixels with radii from wide to
