@@ -91,6 +91,23 @@ def step_file(source: str, cache: Path) -> Path | None:
     return path if path.exists() else None
 
 
+def bench_steps(names: list[str], cache: Path) -> dict[str, Path]:
+    """The STEP files of the named bench parts; a part whose file is not there (a real part
+    without ../shared beside the clone) is left out, and said so on stderr."""
+    steps = {name: step_file(PARTS[name], cache) for name in names}
+    for name in [name for name, step in steps.items() if step is None]:
+        print(f"skipping {name}: {REAL_STEP / PARTS[name]} is not there", file=sys.stderr)
+        del steps[name]
+    return steps
+
+
+def graph_and_model(step: Path, cache: Path, step_deg: float = 5.0) -> tuple[AspectGraph, ModelPoints]:
+    """A bench part's cached aspect graph and its mesh's points for the pose metrics."""
+    graph = AspectGraph.load(cached_graph_path(step, cache, step_deg))
+    mesh = tessellate(load_step(step))
+    return graph, ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
+
+
 def scene(step: Path, folder: Path, images: int | range, seed: int, config: SceneConfig, distractors):
     """Images ``images`` (a range, or a count from the first) of a cached scene, grown anew
     if it holds fewer."""
@@ -217,10 +234,7 @@ def main(argv=None) -> int:
     out = args.out or cache / "results" / f"accuracy_{label}.json"
 
     distractors = distractor_meshes(cache)
-    parts = {name: step_file(PARTS[name], cache) for name in args.parts}
-    for name in [name for name, step in parts.items() if step is None]:
-        print(f"skipping {name}: {REAL_STEP / PARTS[name]} is not there", file=sys.stderr)
-        del parts[name]
+    parts = bench_steps(args.parts, cache)
 
     run = {"label": label, "commit": git("rev-parse", "--short", "HEAD"),
            "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
@@ -233,10 +247,8 @@ def main(argv=None) -> int:
     progress = tqdm(total=len(parts) * len(args.conditions) * args.n, desc="images", unit="img")
     for name, step in parts.items():
         progress.set_postfix_str(f"{name}: aspect graph")
-        graph = AspectGraph.load(cached_graph_path(step, cache, args.step_deg))
+        graph, model = graph_and_model(step, cache, args.step_deg)
         estimator = Estimator(graph, params)
-        mesh = tessellate(load_step(step))
-        model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
         for condition in args.conditions:
             progress.set_postfix_str(f"{name}: {condition}")
             config = SceneConfig(span=tuple(args.span), look=args.look, **CONDITIONS[condition])

@@ -37,12 +37,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import CONDITIONS, PARTS, SPAN, distractor_meshes, scene, scenes_folder, step_file  # noqa: E402
-from bench.graphs import cached_graph_path  # noqa: E402
+from bench.accuracy import (CONDITIONS, PARTS, SPAN, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
+                            scene, scenes_folder)
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
-from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
+from brepose_ros.evaluation.metrics import pose_errors  # noqa: E402
 from brepose_ros.geometry import rotation_about, rotation_angle_deg  # noqa: E402
-from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.refinement import CLIMB_ROUNDS, Candidate, hypothesis_rounds  # noqa: E402
@@ -131,16 +130,10 @@ def main(argv=None) -> int:
     cache = REPO / "data" / "bench"
     distractors = distractor_meshes(cache)
     records, rows = [], []
-    for name in args.parts:
-        step = step_file(PARTS[name], cache)
-        if step is None:
-            print(f"skipping {name}: no STEP file", file=sys.stderr)
-            continue
-        graph = AspectGraph.load(cached_graph_path(step, cache, 5.0))
+    for name, step in bench_steps(args.parts, cache).items():
+        graph, model = graph_and_model(step, cache)
         estimator = Estimator(graph)
         p = estimator.params
-        mesh = tessellate(load_step(step))
-        model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
         axes = principal_axes(graph)
         for condition in args.conditions:
             folder = cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_100"

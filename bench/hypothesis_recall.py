@@ -29,13 +29,10 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import (CONDITIONS, PARTS, SPAN, distractor_meshes, part_set, scene, scenes_folder,  # noqa: E402
-                            step_file)
-from bench.graphs import cached_graph_path  # noqa: E402
-from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
+from bench.accuracy import (CONDITIONS, PARTS, SPAN, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
+                            part_set, scene, scenes_folder)
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors, symmetric_truth  # noqa: E402
 from brepose_ros.geometry import rotation_angle_deg  # noqa: E402
-from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.image_edges import detect_edges  # noqa: E402
@@ -103,14 +100,8 @@ def main(argv=None) -> int:
     cache = REPO / "data" / "bench"
     distractors = None
     rows = []
-    for name in args.parts:
-        step = step_file(PARTS[name], cache)
-        if step is None:
-            print(f"skipping {name}: no STEP file", file=sys.stderr)
-            continue
-        graph = AspectGraph.load(cached_graph_path(step, cache, 5.0))
-        mesh = tessellate(load_step(step))
-        model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
+    for name, step in bench_steps(args.parts, cache).items():
+        graph, model = graph_and_model(step, cache)
         estimators = [(label, Estimator(graph, params)) for label, params in variants]
         for condition in args.conditions:
             folder = cache / scenes_folder("varied", tuple(args.span)) / f"{name}_{condition}_100"

@@ -27,12 +27,10 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, SPAN, scenes_folder, step_file  # noqa: E402
-from bench.graphs import cached_graph_path  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, SPAN, bench_steps, graph_and_model, scenes_folder  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
-from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
+from brepose_ros.evaluation.metrics import pose_errors  # noqa: E402
 from brepose_ros.geometry import rotation_about  # noqa: E402
-from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.image_edges import detect_edges  # noqa: E402
 from brepose_ros.online.refinement import Candidate, PoseRefiner, hypothesis_rounds  # noqa: E402
@@ -68,11 +66,8 @@ def main(argv=None) -> int:
     cache = REPO / "data" / "bench"
     # setting -> angle -> [converged after the rounds, after the polish, starts, seconds]
     tally = {s: {a: [0, 0, 0, 0.0] for a in args.angles} for s in SETTINGS}
-    for name in args.parts:
-        step = step_file(PARTS[name], cache)
-        graph = AspectGraph.load(cached_graph_path(step, cache, 5.0))
-        mesh = tessellate(load_step(step))
-        model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
+    for name, step in bench_steps(args.parts, cache).items():
+        graph, model = graph_and_model(step, cache)
         refiner = PoseRefiner(graph)
         for condition in args.conditions:
             scene = load_scene(cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_100")

@@ -35,13 +35,10 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, SPAN, part_set, scenes_folder, step_file  # noqa: E402
-from bench.graphs import cached_graph_path  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, SPAN, bench_steps, graph_and_model, part_set, scenes_folder  # noqa: E402
 from bench.hypothesis_recall import near_truth  # noqa: E402
 from bench.search_oracle import hypothesis_near, near_templates  # noqa: E402
-from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
-from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.image_edges import detect_edges  # noqa: E402
@@ -129,11 +126,8 @@ def main(argv=None) -> int:
           "| recall (best near) | best cand. | final (success) | loss |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     tally: dict[tuple[str, str], Counter] = {}
-    for name in args.parts:
-        step = step_file(PARTS[name], cache)
-        graph = AspectGraph.load(cached_graph_path(step, cache, 5.0))
-        mesh = tessellate(load_step(step))
-        model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
+    for name, step in bench_steps(args.parts, cache).items():
+        graph, model = graph_and_model(step, cache)
         estimator = Estimator(graph, params)
         for condition in args.conditions:
             scene = load_scene(cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_100")

@@ -30,12 +30,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import CONDITIONS, PARTS, SPAN, distractor_meshes, scene, scenes_folder, step_file  # noqa: E402
-from bench.graphs import cached_graph_path  # noqa: E402
+from bench.accuracy import (CONDITIONS, PARTS, SPAN, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
+                            scene, scenes_folder)
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene, translation_error_mm  # noqa: E402
 from brepose_ros.geometry import quaternion_from_matrix, rotation_about, rotation_angle_deg  # noqa: E402
-from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
 from brepose_ros.synthetic.scenes import LOOKS, SceneConfig  # noqa: E402
@@ -94,11 +93,8 @@ def main(argv=None) -> int:
     out = cache / "results" / f"twins_{args.label}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     records, rows = [], []
-    for name in args.parts:
-        step = step_file(PARTS[name], cache)
-        graph = AspectGraph.load(cached_graph_path(step, cache, args.step_deg))
-        mesh = tessellate(load_step(step))
-        model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
+    for name, step in bench_steps(args.parts, cache).items():
+        graph, model = graph_and_model(step, cache, args.step_deg)
         estimators = {check: Estimator(graph, params) for check, params in settings.items()}
         for condition in args.conditions:
             config = SceneConfig(span=tuple(args.span), look=args.look, **CONDITIONS[condition])
