@@ -306,13 +306,13 @@ class PoseRefiner:
         """``refine`` and ``pose_scores`` of B poses in two stages, the wide rounds and then
         those at the final tolerance: a pose keeps a stage's result only if it scores no
         lower (module doc). With ``align`` each pose also goes through the same stages after
-        its coarse-to-fine alignment on edge pixels (``align``, kept likewise) and keeps the
-        aligned end if it scores ``ALIGN_MIN_GAIN`` higher: the alignment brings far starts in, but it can settle
-        a near start at the wrong depth where the line rounds alone would not (the sharp
-        bracket's clutter image 4: 8 mm deep, docs/results/refinement.md); not if some line end
-        already scores ``enough``. The poses are
-        split between the ``pool``'s threads: each pose refines and scores to the same bits
-        alone or in a batch."""
+        its coarse-to-fine alignment on edge pixels (``align_on_edges``, kept likewise) and
+        keeps the aligned end if it scores ``ALIGN_MIN_GAIN`` higher: the alignment brings
+        far starts in, but it can settle a near start at the wrong depth where the line
+        rounds alone would not (the sharp bracket's clutter image 4: 8 mm deep,
+        docs/results/refinement.md); not if some line end already scores ``enough``. The
+        poses are split between the ``pool``'s threads: each pose refines and scores to the
+        same bits alone or in a batch."""
         lines = [lambda R_c, t_c, stage=stage: self.refine(R_c, t_c, frame, p, stage)
                  for stage in (tuple(f for f in rounds if f > 1), tuple(f for f in rounds if f <= 1)) if stage]
 
