@@ -47,7 +47,7 @@ from ..aspect_graph import AspectGraph
 from ..camera import Camera
 from ..params import EstimatorParams, SearchParams
 from .frame import Frame
-from .hypotheses import TetradHypotheses, best_per_region
+from .hypotheses import TetradHypotheses, best_covered, best_per_region
 from .larger import larger_pose
 from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
@@ -234,8 +234,8 @@ class Estimator:
                 seeds = search.best(coarse, frame, p.search.seeds, p.search)
                 matched = hypotheses.at_seeds(seeds, frame, p.search.seed_window, p.matching, pool)
                 clock = _lap(timings, "matching", clock)
-                best_covered = sorted(matched, key=lambda h: -h.coverage)[:p.search.hypotheses]
-                candidates += self._refiner.verify(best_covered, frame, p.pose, pool, enough=p.search.enough_score)
+                candidates += self._refiner.verify(best_covered(matched, p.search.hypotheses), frame, p.pose, pool,
+                                                   enough=p.search.enough_score)
                 clock = _lap(timings, "refinement", clock)
             else:
                 candidates, clock = self._tetrads(frame, [groups[:1], groups[1:]], p, hypotheses, pool, timings,

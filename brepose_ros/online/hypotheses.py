@@ -152,11 +152,16 @@ class TetradHypotheses:
                            float(aligned.coverage[j])) for j in range(len(views))]
 
 
+def best_covered(hypotheses: list[Hypothesis], count: int) -> list[Hypothesis]:
+    """The ``count`` hypotheses of widest two-way edge coverage, best first."""
+    return sorted(hypotheses, key=lambda h: -h.coverage)[:count]
+
+
 def best_per_region(hypotheses: list[Hypothesis], count: int) -> list[Hypothesis]:
     """The ``count`` best-covered hypotheses of every region: a small region (the part
     among clutter) must not lose its candidates to the whole image's."""
     chosen = []
     for region_id in dict.fromkeys(id(h.region) for h in hypotheses):  # regions in order, not by address
         own = [h for h in hypotheses if id(h.region) == region_id]
-        chosen += sorted(own, key=lambda h: -h.coverage)[:count]
+        chosen += best_covered(own, count)
     return chosen

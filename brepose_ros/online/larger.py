@@ -18,7 +18,7 @@ import numpy as np
 from ..aspect_graph import AspectGraph
 from ..params import EstimatorParams
 from .frame import Frame
-from .hypotheses import TetradHypotheses
+from .hypotheses import TetradHypotheses, best_covered
 from .refinement import Candidate, PoseRefiner, hypothesis_rounds
 from .search import TemplateSearch
 from .workers import SERIAL, WorkerPool
@@ -52,6 +52,11 @@ def depth_sweep(starts: list[Candidate], graph: AspectGraph, frame: Frame, p: Es
             for j in range(len(R))]
 
 
+def centre_distance(graph: AspectGraph, pose: Candidate) -> float:
+    """How far the part's model centre lies from the camera at the pose, metres."""
+    return float(np.linalg.norm(pose.R @ graph.model_center + pose.t))
+
+
 def projected_place(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: Frame) -> tuple[np.ndarray, float]:
     """The pose's model centre in pixels and the part's diameter there, in pixels."""
     depth = (R @ graph.model_center + t)[2]
@@ -78,14 +83,13 @@ def larger_pose(best: Candidate, graph: AspectGraph, frame: Frame, p: EstimatorP
     coarse = search.coarse(frame, p.search, pool, sizes=sizes, box=(x0, y0, x1, y1))
     seeds = search.best(coarse, frame, SEEDS, p.search)
     matched = hypotheses.at_seeds(seeds, frame, p.search.seed_window, p.matching, pool)
-    best_covered = sorted(matched, key=lambda hyp: -hyp.coverage)[:p.search.hypotheses]
-    distance = np.linalg.norm(best.R @ graph.model_center + best.t)
-    verified = refiner.verify(best_covered, frame, p.pose, pool)
+    distance = centre_distance(graph, best)
+    verified = refiner.verify(best_covered(matched, p.search.hypotheses), frame, p.pose, pool)
     verified += depth_sweep(sorted(verified, key=lambda c: -c.score)[:SWEEP_STARTS], graph, frame, p, refiner, pool)
-    larger = [c for c in verified if np.linalg.norm(c.R @ graph.model_center + c.t) < MAX_DEPTH_RATIO * distance]
+    larger = [c for c in verified if centre_distance(graph, c) < MAX_DEPTH_RATIO * distance]
     if not larger:
         return best
     rival = refiner.best(larger, frame, p.pose, pool)
     # the climb and polish may carry a larger start back to the pose's own depth (a twin of it)
-    nearer = np.linalg.norm(rival.R @ graph.model_center + rival.t) < MAX_DEPTH_RATIO * distance
+    nearer = centre_distance(graph, rival) < MAX_DEPTH_RATIO * distance
     return rival if nearer and rival.score > best.score else best
