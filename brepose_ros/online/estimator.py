@@ -224,7 +224,7 @@ class Estimator:
                 # not aligned on edge pixels: the search's many coarse templates, aligned, fit
                 # clutter and occluders as well as a 30 % hidden part (docs/results/refinement.md)
                 candidates += self._refiner.verify(search.best(coarse, frame, p.search.hypotheses, p.search), frame,
-                                                   p.pose, pool, align=False)
+                                                   p.pose, pool)
                 clock = _lap(timings, "refinement", clock)
             elif stage == "windows":
                 windows = [segments_within(frame, center, p.search.seed_window * size / 2)
@@ -234,8 +234,8 @@ class Estimator:
                 seeds = search.best(coarse, frame, p.search.seeds, p.search)
                 matched = hypotheses.at_seeds(seeds, frame, p.search.seed_window, p.matching, pool)
                 clock = _lap(timings, "matching", clock)
-                candidates += self._refiner.verify(best_covered(matched, p.search.hypotheses), frame, p.pose, pool,
-                                                   enough=p.search.enough_score)
+                candidates += self._realigned(self._refiner.verify(best_covered(matched, p.search.hypotheses), frame,
+                                                                   p.pose, pool), frame, p, pool)
                 clock = _lap(timings, "refinement", clock)
             else:
                 candidates, clock = self._tetrads(frame, [groups[:1], groups[1:]], p, hypotheses, pool, timings,
@@ -249,11 +249,11 @@ class Estimator:
         batch by batch until a pose is clear: for the whole image, then its clusters, a clear
         pose in the whole image means the clusters (pieces of the same part, or the part
         among clutter) cannot add one, and their pre-filter, matching and verification are saved.
-        The hypotheses are aligned on edge pixels only after every batch was verified on the
-        lines, and only if none of them scores ``search.enough_score`` there: among clutter
-        the whole image's hypotheses score low while a cluster's hold the part (the demo's
-        images: 0.06-0.47 against 0.83-0.97), and aligning the first batch would be wasted."""
-        first, verified = len(candidates), []
+        The hypotheses are aligned on edge pixels (``_realigned``) only after every batch was
+        verified on the lines: among clutter the whole image's hypotheses score low while a
+        cluster's hold the part (the demo's images: 0.06-0.47 against 0.83-0.97), and aligning
+        the first batch would be wasted."""
+        first = len(candidates)
         for batch in batches:
             if not batch or any(c.score >= CLEAR_SCORE for c in candidates):
                 break
@@ -263,14 +263,22 @@ class Estimator:
             clock = _lap(timings, "prefilter", clock)
             matched = hypotheses.match(jobs, p.matching, pool)
             clock = _lap(timings, "matching", clock)
-            chosen = best_per_region(matched, p.matching.hypotheses)
-            verified += chosen
-            candidates = candidates + self._refiner.verify(chosen, frame, p.pose, pool, align=False)
+            candidates = candidates + self._refiner.verify(best_per_region(matched, p.matching.hypotheses), frame,
+                                                           p.pose, pool)
             clock = _lap(timings, "refinement", clock)
-        if verified and max(c.score for c in candidates[first:]) < p.search.enough_score:
-            candidates = candidates[:first] + self._refiner.verify(verified, frame, p.pose, pool)
-            clock = _lap(timings, "refinement", clock)
+        candidates = candidates[:first] + self._realigned(candidates[first:], frame, p, pool)
+        clock = _lap(timings, "refinement", clock)
         return candidates, clock
+
+    def _realigned(self, verified: list[Candidate], frame: Frame, p: EstimatorParams,
+                   pool: WorkerPool) -> list[Candidate]:
+        """One stage's verified hypotheses, also aligned on edge pixels (``PoseRefiner.realign``)
+        unless one already scores ``search.enough_score`` on the lines: the starts the
+        alignment rescues come from stages whose line ends all score low, and on the tuning
+        images no stage above it owed a success to it (docs/results/refinement.md)."""
+        if not verified or max(c.score for c in verified) >= p.search.enough_score:
+            return verified
+        return self._refiner.realign(verified, frame, p.pose, pool)
 
     def _paper_estimate(self, groups: list, frame: Frame, p: EstimatorParams, hypotheses: TetradHypotheses, pool,
                         not_found: Estimate, clock: float) -> Estimate:

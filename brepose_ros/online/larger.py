@@ -84,7 +84,8 @@ def larger_pose(best: Candidate, graph: AspectGraph, frame: Frame, p: EstimatorP
     seeds = search.best(coarse, frame, SEEDS, p.search)
     matched = hypotheses.at_seeds(seeds, frame, p.search.seed_window, p.matching, pool)
     distance = centre_distance(graph, best)
-    verified = refiner.verify(best_covered(matched, p.search.hypotheses), frame, p.pose, pool)
+    verified = refiner.realign(refiner.verify(best_covered(matched, p.search.hypotheses), frame, p.pose, pool),
+                               frame, p.pose, pool)
     verified += depth_sweep(sorted(verified, key=lambda c: -c.score)[:SWEEP_STARTS], graph, frame, p, refiner, pool)
     larger = [c for c in verified if centre_distance(graph, c) < MAX_DEPTH_RATIO * distance]
     if not larger:

@@ -31,7 +31,7 @@ edge pixels first (``align_on_edges``: points along the visible model edges pair
 nearest edge pixel of like direction within a radius that starts at a fifth of the part's
 projected size and halves down to the final tolerance, ``coarse_to_fine_radii``), then
 goes through the same guarded rounds, and the aligned end is kept if it scores clearly
-higher (``PoseRefiner.refined_scores``; docs/results/refinement.md).
+higher (``PoseRefiner.realign``; docs/results/refinement.md).
 
 The chosen pose then climbs over neighbouring views of the graph (``PoseRefiner.climb``)
 and is polished on the Canny edge pixels at the final tolerance (``align_on_edges``), which
@@ -132,6 +132,9 @@ class Candidate:
     hypothesis: Hypothesis
     #: (6, 6) of the polished pose (``refine_poses``), None before the polish or if it took no step
     covariance: np.ndarray | None = None
+    #: the score of the hypothesis's first pose, before any refinement (``verify``): the bar
+    #: its edge alignment's steps must clear (``realign``); NaN for a pose not straight from one
+    first_score: float = np.nan
 
 
 def pose_from_similarity(R_view: np.ndarray, model_center: np.ndarray, *, scale: float, phi: float,
@@ -286,63 +289,89 @@ class PoseRefiner:
         self.neighbours = nearest_neighbours(graph.view_directions, NEIGHBOURS)
 
     def verify(self, hypotheses: list[Hypothesis], frame: Frame, p: PoseParams,
-               pool: WorkerPool = SERIAL, align: bool = True, enough: float = np.inf) -> list[Candidate]:
-        """The first poses of the hypotheses refined against the image lines, with ``align``
-        also after an alignment on the edge pixels from wide to fine unless a line end already
-        scores ``enough`` (``refined_scores``), and their scores."""
+               pool: WorkerPool = SERIAL) -> list[Candidate]:
+        """The first poses of the hypotheses refined against the image lines, and their
+        scores (each keeps its first pose's score for ``realign``)."""
         if not hypotheses:
             return []
+        R, t, scores, start = self._staged(*self._first_poses(hypotheses), frame, p,
+                                           self._line_stages(frame, p, hypothesis_rounds(p.refine_iterations)), pool)
+        return [Candidate(float(scores[j]), R[j], t[j], h, first_score=float(start[j]))
+                for j, h in enumerate(hypotheses)]
+
+    def realign(self, candidates: list[Candidate], frame: Frame, p: PoseParams,
+                pool: WorkerPool = SERIAL) -> list[Candidate]:
+        """``verify``'s candidates with their hypotheses' first poses also aligned on the
+        edge pixels from wide to fine and then refined on the lines (``aligned_ends``): each
+        candidate takes the aligned end where it scores ``ALIGN_MIN_GAIN`` higher than its
+        line end. The line ends are ``verify``'s, not refined again."""
+        if not candidates:
+            return []
+        R0, t0 = self._first_poses([c.hypothesis for c in candidates])
+        R, t, scores = self.aligned_ends(R0, t0, np.array([c.first_score for c in candidates]),
+                                         np.array([c.R for c in candidates]), np.array([c.t for c in candidates]),
+                                         np.array([c.score for c in candidates]), frame, p,
+                                         hypothesis_rounds(p.refine_iterations), pool)
+        return [dataclasses.replace(c, score=float(scores[j]), R=R[j], t=t[j]) for j, c in enumerate(candidates)]
+
+    def refined_scores(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams, rounds: tuple[float, ...],
+                       pool: WorkerPool, align: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``refine`` and ``pose_scores`` of B poses in two stages, the wide rounds and then
+        those at the final tolerance: a pose keeps a stage's result only if it scores no
+        lower (module doc). With ``align`` each pose also goes through ``aligned_ends``. The
+        poses are split between the ``pool``'s threads: each pose refines and scores to the
+        same bits alone or in a batch."""
+        R_l, t_l, scores, start = self._staged(R, t, frame, p, self._line_stages(frame, p, rounds), pool)
+        if align:
+            return self.aligned_ends(R, t, start, R_l, t_l, scores, frame, p, rounds, pool)
+        return R_l, t_l, scores
+
+    def aligned_ends(self, R: np.ndarray, t: np.ndarray, start: np.ndarray, R_l: np.ndarray, t_l: np.ndarray,
+                     scores: np.ndarray, frame: Frame, p: PoseParams, rounds: tuple[float, ...],
+                     pool: WorkerPool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """B poses R, t scoring ``start`` aligned on edge pixels (``align``) and then through
+        the line stages of ``refined_scores``, each step kept only if it scores no lower; a
+        pose's aligned end replaces its line end R_l, t_l (scoring ``scores``) if it scores
+        ``ALIGN_MIN_GAIN`` higher: the alignment brings far starts in, but it can settle a
+        near start at the wrong depth where the line rounds alone would not (the sharp
+        bracket's clutter image 4: 8 mm deep, docs/results/refinement.md). New arrays."""
+        stages = [lambda R_s, t_s: self.align(R_s, t_s, frame, p)] + self._line_stages(frame, p, rounds)
+        R_a, t_a, aligned, _ = self._staged(R, t, frame, p, stages, pool, start)
+        better = aligned > scores + ALIGN_MIN_GAIN
+        R_l, t_l, scores = R_l.copy(), t_l.copy(), scores.copy()
+        R_l[better], t_l[better], scores[better] = R_a[better], t_a[better], aligned[better]
+        return R_l, t_l, scores
+
+    def _first_poses(self, hypotheses: list[Hypothesis]) -> tuple[np.ndarray, np.ndarray]:
+        """(B, 3, 3), (B, 3): each hypothesis's pose from its view and similarity."""
         g = self.graph
         first = [pose_from_similarity(g.view_rotations[h.view], g.model_center, scale=h.scale, phi=h.phi,
                                       shift=h.shift, R_align=h.region.R_align) for h in hypotheses]
-        R, t, scores = self.refined_scores(np.array([R for R, _ in first]), np.array([t for _, t in first]), frame,
-                                           p, hypothesis_rounds(p.refine_iterations), pool, align=align,
-                                           enough=enough)
-        return [Candidate(float(scores[j]), R[j], t[j], h) for j, h in enumerate(hypotheses)]
+        return np.array([R for R, _ in first]), np.array([t for _, t in first])
 
-    def refined_scores(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams, rounds: tuple[float, ...],
-                       pool: WorkerPool, align: bool = False,
-                       enough: float = np.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``refine`` and ``pose_scores`` of B poses in two stages, the wide rounds and then
-        those at the final tolerance: a pose keeps a stage's result only if it scores no
-        lower (module doc). With ``align`` each pose also goes through the same stages after
-        its coarse-to-fine alignment on edge pixels (``align_on_edges``, kept likewise) and
-        keeps the aligned end if it scores ``ALIGN_MIN_GAIN`` higher: the alignment brings
-        far starts in, but it can settle a near start at the wrong depth where the line
-        rounds alone would not (the sharp bracket's clutter image 4: 8 mm deep,
-        docs/results/refinement.md); not if some line end already scores ``enough``. The
-        poses are split between the ``pool``'s threads: each pose refines and scores to the
-        same bits alone or in a batch."""
-        lines = [lambda R_c, t_c, stage=stage: self.refine(R_c, t_c, frame, p, stage)
-                 for stage in (tuple(f for f in rounds if f > 1), tuple(f for f in rounds if f <= 1)) if stage]
+    def _line_stages(self, frame: Frame, p: PoseParams, rounds: tuple[float, ...]) -> list:
+        """``refine`` as ``_staged``'s stages: the wide rounds of ``rounds``, then those at the final tolerance."""
+        return [lambda R_c, t_c, stage=stage: self.refine(R_c, t_c, frame, p, stage)
+                for stage in (tuple(f for f in rounds if f > 1), tuple(f for f in rounds if f <= 1)) if stage]
 
-        def staged(R_c: np.ndarray, t_c: np.ndarray, scores: np.ndarray, stages: list) -> tuple[np.ndarray, ...]:
-            R_c, t_c, scores = R_c.copy(), t_c.copy(), scores.copy()
+    def _staged(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams, stages: list, pool: WorkerPool,
+                start: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+        """B poses through ``stages`` (functions of R, t), a pose keeping a stage's result
+        only if it scores no lower: the poses R, t, their scores, and the scores of the
+        poses given (``start``, scored here if None). Split between the ``pool``'s threads."""
+        def chunk(which: slice) -> tuple[np.ndarray, ...]:
+            R_c, t_c = np.array(R[which], dtype=float), np.array(t[which], dtype=float)
+            first = pose_scores(self.graph, R_c, t_c, frame, p) if start is None else start[which]
+            scores = first.copy()
             for stage in stages:
                 R_n, t_n = stage(R_c, t_c)
                 new = pose_scores(self.graph, R_n, t_n, frame, p)
                 kept = new >= scores
                 R_c[kept], t_c[kept], scores[kept] = R_n[kept], t_n[kept], new[kept]
-            return R_c, t_c, scores
+            return R_c, t_c, scores, first
 
-        def batch(stages: list, start: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
-            def chunk(which: slice) -> tuple[np.ndarray, ...]:
-                R_c, t_c = np.array(R[which], dtype=float), np.array(t[which], dtype=float)
-                first = pose_scores(self.graph, R_c, t_c, frame, p) if start is None else start[which]
-                return (*staged(R_c, t_c, first, stages), first)
-            parts = pool.map(chunk, pool.split(len(R)))
-            return tuple(np.concatenate([part[k] for part in parts]) for k in range(4))
-
-        R_l, t_l, scores, start = batch(lines)
-        # a batch whose line ends already hold a pose scoring ``enough`` (the estimator's
-        # search.enough_score, past which it looks for no other pose) is not aligned: the
-        # starts it rescues come from batches whose line ends all score low, and on the tuning
-        # images no batch above it owed a success to it (docs/results/refinement.md)
-        if align and len(scores) and scores.max() < enough:
-            R_a, t_a, aligned, _ = batch([lambda R_s, t_s: self.align(R_s, t_s, frame, p)] + lines, start)
-            better = aligned > scores + ALIGN_MIN_GAIN
-            R_l[better], t_l[better], scores[better] = R_a[better], t_a[better], aligned[better]
-        return R_l, t_l, scores
+        parts = pool.map(chunk, pool.split(len(R)))
+        return tuple(np.concatenate([part[k] for part in parts]) for k in range(4))
 
     def align(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams) -> tuple[np.ndarray, np.ndarray]:
         """B poses (B, 3, 3), (B, 3) aligned on the edge pixels with radii from wide to
