@@ -22,6 +22,8 @@ setup(
     name=PACKAGE,
     version=VERSION,
     packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
+    # the confidence's calibration, read by the core from inside the package (online/confidence.py)
+    package_data={PACKAGE: ["confidence.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

@@ -138,9 +138,18 @@ def distractor_meshes(cache: Path) -> list:
 def image_record(result) -> dict:
     e = result.errors
     record = {"image": result.image, "found": e is not None, "score": float(result.estimate.score),
-              "error_ratio": float(result.estimate.error_ratio),
+              "error_ratio": float(result.estimate.error_ratio), "confidence": float(result.estimate.confidence),
               "ms": 1000.0 * result.estimate.timings.get("total", 0.0)}
     return record | (e.to_dict() if e is not None else {})
+
+
+def at_min_confidence(row: dict, min_confidence: float) -> dict:
+    """A results row as if ``pose.min_confidence`` had been ``min_confidence``: a found pose
+    of lower confidence becomes not found (records without a confidence are kept as found)."""
+    dropped = [i for i in row["images"] if i["found"] and i.get("confidence", 1.0) < min_confidence]
+    images = [{"image": i["image"], "found": False, "score": i["score"], "error_ratio": i["error_ratio"],
+               "confidence": i["confidence"], "ms": i["ms"]} if i in dropped else i for i in row["images"]]
+    return row | {"images": images}
 
 
 def git(*args) -> str:
@@ -222,9 +231,13 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, help="results JSON (default data/bench/results/accuracy_LABEL.json)")
     parser.add_argument("--report", type=Path, nargs="+", metavar="RESULTS",
                         help="print the tables of saved results files instead of running")
+    parser.add_argument("--min-confidence", type=float, default=0.0,
+                        help="with --report: the tables as if pose.min_confidence had been this (a pose of lower "
+                             "confidence not found)")
     args = parser.parse_args(argv)
     if args.report:
-        print_tables([row for path in args.report for row in json.loads(path.read_text())["rows"]])
+        rows = [row for path in args.report for row in json.loads(path.read_text())["rows"]]
+        print_tables([at_min_confidence(row, args.min_confidence) for row in rows])
         return 0
     if args.n < 1 or args.start < 0:
         parser.error("--n must be at least 1 and --start not negative")

@@ -147,6 +147,12 @@ class PoseParams(Ranged):
         "does not explain, pixels: stops a small pose that fits one inner feature of the part (a hole) from "
         "outscoring the whole part", 40.0, 0.0, 1000.0)
     min_score: float = doc("a pose with a lower score is reported as not found", 0.6, 0.0, 1.0)
+    min_confidence: float = doc(
+        "a pose whose confidence (the calibrated probability that it is right, online/confidence.py) is lower is "
+        "reported as not found; 0 leaves the decision to pose.min_score", 0.0, 0.0, 1.0)
+    confidence_file: str = doc(
+        "calibration file of the confidence (bench/confidence.py --fit writes one); empty: the shipped "
+        "brepose_ros/confidence.yaml", "")
     warn_error_ratio: float = doc("diagnostics turn WARN above this error ratio", 0.5, 0.0, 1.0)
     twin_check: bool = doc(
         "compare the final pose with its twins under the part's near symmetries (stored in the aspect graph) on "

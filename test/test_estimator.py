@@ -57,6 +57,7 @@ def test_clean_images_give_metric_poses(bracket, estimator, tmp_path):
             assert r.estimate.score > 0.6 and 0.0 <= r.estimate.error_ratio <= 1.0
             assert len(r.estimate.model_segments) == len(r.estimate.image_segments) > 3
             assert r.estimate.shares.score == pytest.approx(r.estimate.score)  # the parts behind the score
+            assert r.estimate.confidence > 0.5
 
 
 @pytest.mark.slow
@@ -96,6 +97,30 @@ def test_the_papers_method_alone_reports_the_matched_view_unrefined(bracket, est
                                                                              if r.errors])
 
 
+@pytest.mark.slow
+def test_min_confidence_decides_found_and_the_confidence_is_reported_either_way(bracket, estimator, tmp_path):
+    generate_scene(bracket[0], tmp_path / "scene", 1, seed=3)
+    [entry] = load_scene(tmp_path / "scene").entries
+    image, camera = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED), load_scene(tmp_path / "scene").camera
+    defaults = estimator.params
+    found = estimator.estimate(image, camera)
+    assert found.found and found.score >= defaults.pose.min_score and 0.0 < found.confidence <= 1.0
+    try:
+        estimator.params = defaults.with_flat({"pose.min_confidence": 1.0})
+        strict = estimator.estimate(image, camera)
+    finally:
+        estimator.params = defaults
+    assert not strict.found and strict.R is None and strict.covariance is None
+    assert strict.confidence == pytest.approx(found.confidence) and strict.score == pytest.approx(found.score)
+
+
+def test_a_bad_calibration_file_is_refused_before_it_is_used(estimator, tmp_path):
+    (tmp_path / "c.yaml").write_text("format: 1\n")
+    with pytest.raises(ValueError, match="calibration file .*c.yaml: missing"):
+        estimator.params = estimator.params.with_flat({"pose.confidence_file": str(tmp_path / "c.yaml")})
+    assert estimator.params.pose.confidence_file == ""
+
+
 def test_image_without_the_part_is_not_found(estimator):
     rng = np.random.default_rng(0)
     camera = Camera.from_fov(640, 480, 600.0)
@@ -130,8 +155,9 @@ def test_estimate_command_writes_conventions_predictions(bracket, tmp_path, caps
     predictions = json.loads(out.read_text())
     assert [p["image"] for p in predictions] == images
     for p in predictions:
-        assert set(p) == {"image", "R", "t", "score", "error_ratio"}
+        assert set(p) == {"image", "R", "t", "score", "error_ratio", "confidence"}
         assert p["R"] is None or (len(p["R"]) == 9 and len(p["t"]) == 3)
+        assert 0.0 <= p["confidence"] <= 1.0
 
 
 def test_estimate_command_reports_a_refused_graph(tmp_path, capsys):

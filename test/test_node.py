@@ -63,7 +63,8 @@ class FakeEstimator:
         found = bool(image.max() > 0)
         return Estimate(found, R_FAKE if found else None, T_FAKE if found else None,
                         score=0.9 if found else 0.1, error_ratio=0.2, view_index=3,
-                        n_image_segments=12, n_matched=8, n_nearest=6, timings={"edges": 0.001},
+                        confidence=0.8 if found else 0.05, n_image_segments=12, n_matched=8, n_nearest=6,
+                        timings={"edges": 0.001},
                         image_segments=SEGMENTS, model_segments=SEGMENTS + 1.0)
 
     def close(self) -> None:
@@ -201,6 +202,7 @@ def test_pose_and_diagnostics_carry_the_image_stamp(ros):
     assert status.hardware_id == FRAME
     values = status_values(status)
     assert float(values["error_ratio"]) == pytest.approx(0.2)
+    assert float(values["confidence"]) == pytest.approx(0.8)
     for key in ("score", "view_index", "image_edges", "matched_pairs", "latency_ms", "estimator_ms", "edges_ms"):
         assert key in values
     assert node.parts[0].estimator.calls[0][1] == CAMERA

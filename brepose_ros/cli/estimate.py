@@ -47,7 +47,8 @@ def main(argv=None) -> int:
             image = read_image_file(path)
             estimate = estimator.estimate(image, camera)
             predictions.append(prediction_entry(path, estimate))
-            state = f"score {estimate.score:.2f}" if estimate.found else f"not found (score {estimate.score:.2f})"
+            measures = f"score {estimate.score:.2f}, confidence {estimate.confidence:.2f}"
+            state = measures if estimate.found else f"not found ({measures})"
             if estimate.found and estimate.ambiguous:
                 state += f", ambiguous: the image cannot tell it from a symmetric twin (margin " \
                          f"{estimate.symmetry_margin:.2f})"

@@ -157,7 +157,8 @@ def mean_error_rate(errors: list[PoseErrors | None]) -> float:
 
 
 def write_predictions(path: str | Path, predictions: list[dict]) -> None:
-    """Predictions JSON of CONVENTIONS.md: image, R (9), t (3), score, error_ratio."""
+    """Predictions JSON of CONVENTIONS.md: image, R (9), t (3), score, error_ratio, and
+    the confidence (the probability that the pose is right, ``online/confidence.py``)."""
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(predictions, indent=1) + "\n")
 
@@ -169,7 +170,8 @@ def prediction_entry(image: str, estimate) -> dict:
     entry = {"image": image,
              "R": np.asarray(estimate.R).ravel().tolist() if found else None,
              "t": np.asarray(estimate.t).ravel().tolist() if found else None,
-             "score": float(estimate.score), "error_ratio": float(estimate.error_ratio)}
+             "score": float(estimate.score), "error_ratio": float(estimate.error_ratio),
+             "confidence": float(estimate.confidence)}
     if estimate.symmetry_margin is not None:
         entry.update(symmetry_margin=float(estimate.symmetry_margin), ambiguous=bool(estimate.ambiguous))
     return entry

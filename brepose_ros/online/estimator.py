@@ -22,7 +22,9 @@ Each stage lives in its own module; this one only wires them:
    place, searched again (``pose.larger_check``, off by default)
 6. ``symmetry``: the pose against its twins under the part's near symmetries, on the
    edges that tell them apart; ambiguous when the image cannot decide
-7. ``scoring``: found if the score passes ``pose.min_score``; the error ratio at the pose
+7. ``scoring``: the error ratio and the score's shares at the pose; ``confidence``: the
+   probability that the pose is right; found if the score passes ``pose.min_score`` and the
+   confidence ``pose.min_confidence``
 
 ``estimate(..., paper_only=True)`` stops after step 3, as the seed paper does (section 6):
 the bipartite matching's best-covered hypothesis over all regions, its view turned into a
@@ -52,6 +54,7 @@ from .larger import larger_pose
 from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
+from .confidence import load_calibration
 from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_shares
 from .search import TemplateSearch
 from .symmetry import check_twins
@@ -96,6 +99,12 @@ class Estimate:
     ambiguous: bool = False
     #: the three parts of the score at the final pose (``scoring.Shares``); None when nothing was scored
     shares: Shares | None = None
+    #: diagonal and edge length of the projected visible model edges at the final pose, pixels
+    size_pixels: float = 0.0
+    model_length_pixels: float = 0.0
+    #: the probability that the pose is right (``confidence.Calibration``); 0 when no pose was
+    #: verified (no candidate, or ``paper_only``)
+    confidence: float = 0.0
 
 
 class Estimator:
@@ -115,6 +124,7 @@ class Estimator:
         self._retired: list[WorkerPool] = []
         self._lock = threading.Lock()
         self._search = template_search(graph, self._params.search)
+        self._calibration = load_calibration(self._params.pose.confidence_file)
 
     @property
     def params(self) -> EstimatorParams:
@@ -124,6 +134,7 @@ class Estimator:
     def params(self, value: EstimatorParams) -> None:
         """New parameters apply from the next image; view features, templates and worker
         threads are rebuilt if needed (never torn down under an image in flight)."""
+        calibration = load_calibration(value.pose.confidence_file)  # a bad file refuses the whole change
         with self._lock:
             if value.matching.max_model_segments != self._params.matching.max_model_segments:
                 self._hypotheses = TetradHypotheses(self.graph, value.matching)
@@ -132,7 +143,7 @@ class Estimator:
             if resolve_workers(value.matching.workers) != self._pool.size:
                 self._retired.append(self._pool)
                 self._pool = WorkerPool(value.matching.workers)
-            self._params = value
+            self._params, self._calibration = value, calibration
 
     def close(self) -> None:
         with self._lock:
@@ -149,6 +160,7 @@ class Estimator:
         """
         with self._lock:  # one consistent set for the whole image, whatever changes meanwhile
             p, hypotheses, search, pool = self._params, self._hypotheses, self._search, self._pool
+            calibration = self._calibration
             retired, self._retired = self._retired, []
         for old in retired:  # the image that used them has finished: estimate is not re-entrant
             old.close()
@@ -181,16 +193,19 @@ class Estimator:
             best, margin = check_twins(best, self.graph, self._refiner, frame, p.pose)
             clock = _lap(timings, "symmetry", clock)
         timings["total"] = sum(timings.values())
-        found = best.score >= p.pose.min_score
         pairs = edge_pairs(self.graph, best.R, best.t, frame, p)
-        shares = pose_shares(self.graph, best.R, best.t, frame, p.pose)
-        return Estimate(found=found, R=best.R if found else None, t=best.t if found else None, score=best.score,
-                        error_ratio=pairs.error_ratio, view_index=self.graph.nearest_view(best.R, best.t),
-                        n_image_segments=len(edges.segments), n_matched=pairs.n_matched, n_nearest=pairs.n_nearest,
-                        image_segments=pairs.image_segments, model_segments=pairs.model_segments, timings=timings,
-                        matched_view=int(best.hypothesis.view), covariance=best.covariance if found else None,
-                        symmetry_margin=margin, ambiguous=margin is not None and margin < p.pose.twin_margin,
-                        shares=shares)
+        shares, size, length = pose_shares(self.graph, best.R, best.t, frame, p.pose)
+        estimate = Estimate(found=False, R=None, t=None, score=best.score, error_ratio=pairs.error_ratio,
+                            view_index=self.graph.nearest_view(best.R, best.t), n_image_segments=len(edges.segments),
+                            n_matched=pairs.n_matched, n_nearest=pairs.n_nearest,
+                            image_segments=pairs.image_segments, model_segments=pairs.model_segments,
+                            timings=timings, matched_view=int(best.hypothesis.view), symmetry_margin=margin,
+                            ambiguous=margin is not None and margin < p.pose.twin_margin, shares=shares,
+                            size_pixels=size, model_length_pixels=length)
+        estimate.confidence = calibration.confidence(estimate)
+        if best.score >= p.pose.min_score and estimate.confidence >= p.pose.min_confidence:
+            estimate.found, estimate.R, estimate.t, estimate.covariance = True, best.R, best.t, best.covariance
+        return estimate
 
     def candidates(self, frame: Frame, timings: dict | None = None) -> list[Candidate]:
         """The hypotheses of ``search.generators`` on one image's edges, each refined and

@@ -62,11 +62,17 @@ def pose_scores(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame"
     return scores
 
 
-def pose_shares(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame", p: PoseParams) -> "Shares":
-    """The ``Shares`` behind one pose's score (``pose_scores``, without its size floor): what
-    the estimate reports beside the score."""
+def pose_shares(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame",
+                p: PoseParams) -> tuple["Shares", float, float]:
+    """The ``Shares`` behind one pose's score (``pose_scores``, without its size floor), and
+    the diagonal and the edge length of its projected visible model edges, pixels: what the
+    estimate reports beside the score."""
     model_px = frame.camera.project_model(graph.seg_3d[graph.visible_segments(R, t)], R, t)
-    return frame.evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels)
+    if len(model_px) == 0:
+        return frame.evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels), 0.0, 0.0
+    diagonal = float(np.hypot(*np.ptp(model_px.reshape(-1, 2), axis=0)))
+    length = float(np.linalg.norm(model_px[:, 1] - model_px[:, 0], axis=1).sum())
+    return frame.evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels), diagonal, length
 
 
 @dataclass

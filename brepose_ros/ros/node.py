@@ -15,9 +15,10 @@ Topics (node name ``estimator``; relative names can be remapped with ``--ros-arg
 - out ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): one array per image, header copied
   from the image, one status named ``estimator: <part>`` per part. Levels: OK = found with
   error ratio <= ``pose.warn_error_ratio``; WARN = not found (score below
-  ``pose.min_score``), error ratio above it, or a pose the image cannot tell from its
-  symmetric twin (``Estimate.ambiguous``); ERROR = the image or the intrinsics could not
-  be used, or the estimator raised (also logged). Values: found, score, error_ratio,
+  ``pose.min_score`` or confidence below ``pose.min_confidence``), error ratio above it, or a
+  pose the image cannot tell from its symmetric twin (``Estimate.ambiguous``); ERROR = the
+  image or the intrinsics could not be used, or the estimator raised (also logged). Values:
+  found, score, confidence (the probability that the pose is right), error_ratio,
   view_index, image_edges, matched_pairs, nearest_pairs, symmetry_margin (-1 for a part
   without near symmetry), estimator_ms, latency_ms (receipt
   to answer), frames_skipped (frames received but replaced by a newer one before the worker
@@ -271,8 +272,9 @@ class Part:
 def diagnose(estimate: Estimate, params: EstimatorParams) -> tuple[bytes, str]:
     """Diagnostic level and message of one estimate (documented thresholds, module docstring)."""
     if not estimate.found:
-        return DiagnosticStatus.WARN, (f"part not found (score {estimate.score:.2f}, "
-                                       f"pose.min_score {params.pose.min_score:g})")
+        return DiagnosticStatus.WARN, (f"part not found (score {estimate.score:.2f}, pose.min_score "
+                                       f"{params.pose.min_score:g}; confidence {estimate.confidence:.2f}, "
+                                       f"pose.min_confidence {params.pose.min_confidence:g})")
     if estimate.error_ratio > params.pose.warn_error_ratio:
         return DiagnosticStatus.WARN, (f"found, but error ratio {estimate.error_ratio:.2f} > "
                                        f"pose.warn_error_ratio {params.pose.warn_error_ratio:g}")
@@ -280,11 +282,12 @@ def diagnose(estimate: Estimate, params: EstimatorParams) -> tuple[bytes, str]:
         return DiagnosticStatus.WARN, (f"found, but the image cannot tell the pose from its symmetric twin "
                                        f"(margin {estimate.symmetry_margin:.2f} < pose.twin_margin "
                                        f"{params.pose.twin_margin:g})")
-    return DiagnosticStatus.OK, f"found (score {estimate.score:.2f}, error ratio {estimate.error_ratio:.2f})"
+    return DiagnosticStatus.OK, (f"found (score {estimate.score:.2f}, confidence {estimate.confidence:.2f}, "
+                                 f"error ratio {estimate.error_ratio:.2f})")
 
 
 def estimate_values(estimate: Estimate) -> dict[str, Any]:
-    values = {"found": estimate.found, "score": float(estimate.score),
+    values = {"found": estimate.found, "score": float(estimate.score), "confidence": float(estimate.confidence),
               "error_ratio": float(estimate.error_ratio), "view_index": estimate.view_index,
               "image_edges": estimate.n_image_segments, "matched_pairs": estimate.n_matched,
               "nearest_pairs": estimate.n_nearest,
