@@ -287,9 +287,8 @@ def warm_up() -> None:
                           np.zeros((1, 2), np.float32), 1, np.zeros(1, np.int64), phis, np.cos(phis), np.sin(phis),
                           2.0, 1.0, 0.25, np.empty((1, 2), np.float32))
     near, edges = np.zeros((8, 6, 6), np.uint8), np.zeros((4, 4), np.uint8)
-    pose_evidence_kernel(segments * 3.0, near, np.zeros((8, 6, 6), np.float32), edges,
-                         np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 3.0]]), 1.0, 2, 1, np.zeros(5),
-                         np.zeros((0, 0), np.uint8))
+    pose_evidence_kernel(segments * 3.0, np.array([0, 2]), 1.0, near, np.zeros((8, 6, 6), np.float32), edges, 1.0,
+                         1.0, 0.2, 2, 1, np.zeros((1, 5)), np.zeros((0, 0), np.uint8))
 
 
 @njit(nogil=True, cache=True)
@@ -343,9 +342,85 @@ def _nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, i_ux: np.ndarray,
 
 
 @njit(nogil=True, cache=True)
-def pose_evidence_kernel(model_px: np.ndarray, near: np.ndarray, chance: np.ndarray, edges: np.ndarray,
-                         outline: np.ndarray, tolerance: float, cell: int, reach: int, out: np.ndarray,
-                         labels: np.ndarray) -> None:
+def pose_evidence_kernel(model_px: np.ndarray, spans: np.ndarray, min_size: float, near: np.ndarray,
+                         chance: np.ndarray, edges: np.ndarray, tolerance: float, min_margin: float,
+                         margin_share: float, cell: int, reach: int, out: np.ndarray, labels: np.ndarray) -> None:
+    """What ``scoring.EdgeEvidence.shares`` counts for B poses, into ``out`` (B, 5): pose b's
+    projected visible model segments are ``model_px[spans[b]:spans[b + 1]]`` (pixels).
+
+    A pose without segments, or whose segments span less than ``min_size`` pixels
+    (diagonal of their box), keeps zeros. The rest are clipped a few image sizes out (a pose
+    far off projects far outside; clipped, the outline stays what it covers of the image),
+    outlined (``grown_outline``) and counted (``_pose_evidence``). One call for a batch of
+    poses, GIL released: per pose in numpy, the projection, outline and clipping cost more
+    than the counting and held the GIL. ``labels`` as ``_pose_evidence``'s.
+    """
+    height, width = edges.shape
+    far = float(max(height, width))
+    for b in range(len(spans) - 1):
+        out[b, :] = 0.0
+        lo, hi = spans[b], spans[b + 1]
+        if hi <= lo:
+            continue
+        points = model_px[lo:hi].reshape(-1, 2)
+        x_lo, x_hi, y_lo, y_hi = np.inf, -np.inf, np.inf, -np.inf
+        for i in range(points.shape[0]):
+            x_lo, x_hi = min(x_lo, points[i, 0]), max(x_hi, points[i, 0])
+            y_lo, y_hi = min(y_lo, points[i, 1]), max(y_hi, points[i, 1])
+        if math.hypot(x_hi - x_lo, y_hi - y_lo) < min_size:
+            continue
+        clipped = np.minimum(np.maximum(model_px[lo:hi], -4.0 * far), 5.0 * far)
+        _pose_evidence(clipped, near, chance, edges, grown_outline(clipped.reshape(-1, 2), min_margin, margin_share),
+                       tolerance, cell, reach, out[b], labels)
+
+
+@njit(nogil=True, cache=True)
+def grown_outline(points: np.ndarray, min_margin: float, margin_share: float) -> np.ndarray:
+    """(K, 2) corners of the convex hull of points (N, 2), grown about their mean by
+    ``margin_share`` of their root-mean-square distance from it, at least ``min_margin``.
+    The hull is OpenCV's ``convexHull`` of the points as float32 (the same corners, no
+    collinear ones; the order may start elsewhere), by Andrew's monotone chain."""
+    n = points.shape[0]
+    rounded = np.empty((n, 2))
+    for i in range(n):
+        rounded[i, 0], rounded[i, 1] = np.float32(points[i, 0]), np.float32(points[i, 1])
+    order = np.argsort(rounded[:, 1], kind="mergesort")
+    order = order[np.argsort(rounded[order, 0], kind="mergesort")]  # by x, then y
+    chain = np.empty(2 * n + 1, np.int64)
+    size = 0
+    for half in range(2):  # the lower chain left to right, then the upper right to left
+        start = size
+        for k in range(n):
+            i = order[k] if half == 0 else order[n - 1 - k]
+            while size - start >= 2:
+                o, a = chain[size - 2], chain[size - 1]
+                cross = ((rounded[a, 0] - rounded[o, 0]) * (rounded[i, 1] - rounded[o, 1])
+                         - (rounded[a, 1] - rounded[o, 1]) * (rounded[i, 0] - rounded[o, 0]))
+                if cross > 0.0:
+                    break
+                size -= 1
+            chain[size] = i
+            size += 1
+        size -= 1  # each chain's last point starts the other
+    first, last = rounded[order[0]], rounded[order[n - 1]]
+    if first[0] == last[0] and first[1] == last[1]:
+        size = 1  # all points alike: one corner
+    hull = rounded[chain[:max(size, 1)]]
+    center = np.zeros(2)
+    for i in range(len(hull)):
+        center += hull[i]
+    center /= len(hull)
+    spread = 0.0
+    for i in range(len(hull)):
+        spread += (hull[i, 0] - center[0]) ** 2 + (hull[i, 1] - center[1]) ** 2
+    radius = max(math.sqrt(spread / len(hull)), 1.0)
+    return center + (1.0 + max(margin_share, min_margin / radius)) * (hull - center)
+
+
+@njit(nogil=True, cache=True)
+def _pose_evidence(model_px: np.ndarray, near: np.ndarray, chance: np.ndarray, edges: np.ndarray,
+                   outline: np.ndarray, tolerance: float, cell: int, reach: int, out: np.ndarray,
+                   labels: np.ndarray) -> None:
     """What ``scoring.EdgeEvidence.shares`` counts for one pose, into ``out`` (5,).
 
     model_px (S, 2, 2) the projected visible model segments, pixels; near (BINS, H + 2,
