@@ -34,11 +34,14 @@ class Frame:
                pool: WorkerPool = SERIAL) -> tuple[ImageEdges, "Frame"]:
         """``detect_edges`` and ``of`` at once: after Canny, the line segments (Hough, merge,
         refit) and the evidence for scoring, which both start from the edge pixels alone,
-        run on two of the ``pool``'s threads."""
+        run on two of the ``pool``'s threads. The evidence's nearest-edge table
+        (``EdgeEvidence.nearest_like``) is built there too, first as the longest job: every
+        image with a pose aligns on edge pixels (its polish at least), and the refinement's
+        threads would wait for it there."""
         pixels = edge_pixels(image, params)
-        segments, refine_segments, evidence = pool.map(lambda job: job(), [
-            lambda: line_segments(pixels, params), lambda: line_segments(pixels, refinement_params(params)),
-            lambda: _evidence(pixels)])
+        evidence, segments, refine_segments = pool.map(lambda job: job(), [
+            lambda: _evidence(pixels, nearest=True), lambda: line_segments(pixels, params),
+            lambda: line_segments(pixels, refinement_params(params))])
         edges = dataclasses.replace(pixels, segments=segments, refine_segments=refine_segments)
         return edges, cls._with(edges, camera, evidence)
 
@@ -49,5 +52,9 @@ class Frame:
                    evidence=evidence, edge_points_n=camera.undistort(evidence.pixels))
 
 
-def _evidence(edges: ImageEdges) -> EdgeEvidence:
-    return EdgeEvidence(edges.edge_map, edges.gradient_x, edges.gradient_y)
+def _evidence(edges: ImageEdges, nearest: bool = False) -> EdgeEvidence:
+    """The edge evidence of ``edges``, with its nearest-edge table built if ``nearest``."""
+    evidence = EdgeEvidence(edges.edge_map, edges.gradient_x, edges.gradient_y)
+    if nearest:
+        evidence.nearest_like()
+    return evidence

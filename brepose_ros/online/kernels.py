@@ -65,21 +65,22 @@ def _cholesky_solve(a: np.ndarray, b: np.ndarray, x: np.ndarray) -> bool:
 
 @njit(nogil=True, cache=True)
 def refine_poses_kernel(R: np.ndarray, t: np.ndarray, points: np.ndarray, lines: np.ndarray, per_pair: int,
-                        weights: np.ndarray, ends: np.ndarray, active: np.ndarray, f_scale: float, iterations: int,
-                        normal_out: np.ndarray, variance_out: np.ndarray) -> None:
+                        weights: np.ndarray, ends: np.ndarray, active: np.ndarray, f_scale: np.ndarray,
+                        iterations: int, normal_out: np.ndarray, variance_out: np.ndarray) -> None:
     """``refinement.refine_poses`` on prepared arrays, R (B, 3, 3) and t (B, 3) in place.
 
     points (N, 3) model points, ``per_pair`` consecutive ones per image line of lines
-    (K, 3) with weights (K,); pose b owns the points ``ends[b]:ends[b + 1]`` and refines if
-    ``active[b]``. Each pose runs its own loop of the same Gauss-Newton steps as the batched
-    numpy version had (the sums run in another order: the last bits may differ).
+    (K, 3) with weights (K,); pose b owns the points ``ends[b]:ends[b + 1]``, refines if
+    ``active[b]`` with Huber threshold ``f_scale[b]``. Each pose runs its own loop of the
+    same Gauss-Newton steps as the batched numpy version had (the sums run in another
+    order: the last bits may differ).
     normal_out (B, 6, 6) and variance_out (B,) receive each pose's last undamped normal
     matrix J^T W J and weighted residual variance (left as they are for a pose that took
     no step), from which the caller forms the covariance.
     """
     for b in range(len(R)):
         if active[b]:
-            _gauss_newton(R[b], t[b], points, lines, per_pair, weights, ends[b], ends[b + 1], f_scale, iterations,
+            _gauss_newton(R[b], t[b], points, lines, per_pair, weights, ends[b], ends[b + 1], f_scale[b], iterations,
                           normal_out[b], variance_out[b:b + 1])
 
 
@@ -270,7 +271,7 @@ def warm_up() -> None:
     R, t = np.eye(3)[None].copy(), np.array([[0.0, 0.0, 1.0]])
     points = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.1, 0.1, 0.0]])
     lines = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, -0.1], [0.0, 1.0, -0.1]])
-    refine_poses_kernel(R, t, points, lines, 1, np.ones(4), np.array([0, 4]), np.ones(1, np.bool_), 0.01, 2,
+    refine_poses_kernel(R, t, points, lines, 1, np.ones(4), np.array([0, 4]), np.ones(1, np.bool_), np.full(1, 0.01), 2,
                         np.zeros((1, 6, 6)), np.zeros(1))
     segments = np.array([[[0.0, 0.0], [1.0, 0.0]], [[0.0, 0.1], [1.0, 0.1]]])
     nearest_lines_kernel(segments, segments, 0.5, 0.9, np.empty(2, np.int64), np.empty(2))

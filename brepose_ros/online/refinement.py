@@ -151,7 +151,7 @@ TRANSLATION_FIRST = [3, 4, 5, 0, 1, 2]
 
 
 def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: np.ndarray, spans: np.ndarray, *,
-                 f_scale: float, iterations: int, weights: np.ndarray | None = None,
+                 f_scale: float | np.ndarray, iterations: int, weights: np.ndarray | None = None,
                  covariance_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Robust Gauss-Newton on the point-to-line distances (normalised units), for B poses
     R (B, 3, 3), t (B, 3) at once: pairs (model points (K, P, 3), image line) ``spans[b]:spans[b + 1]``
@@ -159,7 +159,7 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
     are pulled onto its line. Returns new arrays.
 
     Iteratively reweighted least squares with Huber weights (``f_scale`` is the Huber
-    threshold) times the pair's ``weights`` (K,) if given (1 by default), an analytic
+    threshold, one for all poses or one per pose) times the pair's ``weights`` (K,) if given (1 by default), an analytic
     Jacobian and the update R <- exp(w) R, t <- t + dt: six unknowns, so each step is a 6x6
     solve per pose; far cheaper than a generic solver with numeric derivatives. It runs for
     every hypothesis and every neighbouring view the climb tries, on about a hundred points
@@ -180,7 +180,8 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
     normal, variance = np.zeros((len(R), 6, 6)), np.full(len(R), np.nan)
     refine_poses_kernel(R, t, np.ascontiguousarray(model_3d, dtype=float).reshape(-1, 3), line_equations(image_2d),
                         per_pair, pair_weights, per_pair * np.asarray(spans, dtype=np.int64), np.diff(spans) >= 3,
-                        float(f_scale), int(iterations), normal, variance)
+                        np.broadcast_to(np.asarray(f_scale, dtype=float), len(R)).copy(), int(iterations), normal,
+                        variance)
     if covariance_out is not None:
         for b in np.nonzero(np.isfinite(variance))[0]:
             covariance_out[b] = variance[b] * np.linalg.pinv(normal[b])[TRANSLATION_FIRST][:, TRANSLATION_FIRST]
@@ -200,8 +201,8 @@ def align_on_edges(R: np.ndarray, t: np.ndarray, graph: AspectGraph, frame: Fram
     segment's kind (``EDGE_KIND_WEIGHTS``); ``EDGE_ITERATIONS`` Gauss-Newton steps per
     pairing. Every projected edge speaks, where the line refinement only hears edges the
     line detector found (6-12 on the rounded bracket, whose arcs and holes give no Hough
-    lines). The poses pair together and refine in one call per radius (a pose refines to
-    the same bits alone or in a batch). A pose with fewer than ``MIN_EDGE_POINTS`` pairs,
+    lines). The poses pair together and refine in one call, each with its own radius (a
+    pose refines to the same bits alone or in a batch). A pose with fewer than ``MIN_EDGE_POINTS`` pairs,
     or behind the camera, stops where it is. ``covariance_out`` (B, 6, 6) receives each
     pose's covariance of its last step (``refine_poses``).
     """
@@ -232,17 +233,14 @@ def align_on_edges(R: np.ndarray, t: np.ndarray, graph: AspectGraph, frame: Fram
         lines = camera.undistort(np.stack([edge[found] - direction, edge[found] + direction], axis=1))
         points, pose_of = points[found], pose_of[found]
         weights = EDGE_KIND_WEIGHTS[graph.seg_kind[rows[segment[found]]]]
-        for radius in np.unique(radii[pose_of, k]):  # one Huber threshold per call
-            group = np.unique(pose_of[radii[pose_of, k] == radius])
-            pairs = np.isin(pose_of, group)
-            spans = np.concatenate([[0], np.cumsum(np.bincount(np.searchsorted(group, pose_of[pairs]),
-                                                              minlength=len(group)))])
-            covariance = None if covariance_out is None else covariance_out[group]
-            R[group], t[group] = refine_poses(R[group], t[group], points[pairs][:, None], lines[pairs], spans,
-                                              f_scale=0.5 * radius / camera.focal, iterations=EDGE_ITERATIONS,
-                                              weights=weights[pairs], covariance_out=covariance)
-            if covariance_out is not None:
-                covariance_out[group] = covariance
+        group = np.unique(pose_of)  # pose_of is sorted: each pose's pairs lie together
+        spans = np.append(np.searchsorted(pose_of, group), len(pose_of))
+        covariance = None if covariance_out is None else covariance_out[group]
+        R[group], t[group] = refine_poses(R[group], t[group], points[:, None], lines, spans,
+                                          f_scale=0.5 * radii[group, k] / camera.focal, iterations=EDGE_ITERATIONS,
+                                          weights=weights, covariance_out=covariance)
+        if covariance_out is not None:
+            covariance_out[group] = covariance
     return R, t
 
 
