@@ -192,6 +192,40 @@ def test_the_search_hypothesis_names_the_drawn_view_angle_size_and_position():
     assert all(np.hypot(*(place - first)) >= 0.5 * min(size, other) for place, other in others)
 
 
+def test_on_texture_the_probes_ask_more_than_chance_and_the_part_is_still_found():
+    """Short edges of every direction strewn over the image (a photograph's texture) set about
+    half of the response maps: a position then passes the probes only if they beat that
+    density by ``CHANCE_MARGIN``, and the drawn bracket still does and is the best place.
+    On a plain drawing the probes ask ``min_coarse_share`` as before."""
+    from brepose_ros.camera import Camera
+    from brepose_ros.online.frame import Frame
+
+    rng = np.random.default_rng(3)
+    camera, p = Camera.from_fov(640, 480, 600.0), SearchParams()
+    part, center = bracket_outline(0.8), np.array([300.0, 250.0])
+    plain, textured = Drawing(480, 640), Drawing(480, 640)
+    for image in (plain, textured):
+        image.draw(center + 250.0 * part)
+    starts = rng.uniform(0, [640, 480], size=(1500, 2))
+    turns = rng.uniform(0, np.pi, 1500)
+    textured.draw(np.stack([starts, starts + 8.0 * np.stack([np.cos(turns), np.sin(turns)], axis=1)], axis=1))
+    finder = search.TemplateSearch(one_view_graph(part), p)
+    for image, textures in ((plain, False), (textured, True)):
+        maps = search.ResponseMaps.of(image.evidence(), p.coarse_factor, p.spread, 2)
+        share = search.probe_share(maps, p)
+        if textures:
+            density = maps.maps[:, 2:-2, 2:-2].mean()
+            assert density > 0.3 and share == pytest.approx(density + search.CHANCE_MARGIN)
+        else:
+            assert share == p.min_coarse_share
+        evidence = image.evidence()
+        frame = Frame(segments_px=np.zeros((0, 2, 2)), segments_n=np.zeros((0, 2, 2)),
+                      refine_segments_n=np.zeros((0, 2, 2)), camera=camera,
+                      evidence=evidence, edge_points_n=camera.undistort(evidence.pixels))
+        (place, size), = finder.places(finder.coarse(frame, p), 1)
+        assert np.allclose(place, center, atol=8.0) and size == pytest.approx(250.0, rel=0.13), (place, size)
+
+
 @pytest.fixture(scope="module")
 def bracket_graph(builtin_step, tmp_path_factory):
     """The sharp bracket, its aspect graph at 8 degrees and its surface points."""

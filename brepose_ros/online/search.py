@@ -28,7 +28,7 @@ Steps, per image:
    position. A chunk of templates is one call, so threads share the templates
    (``workers.WorkerPool``). A first pass counts a quarter of the points (``PROBE_STRIDE``)
    on blocks of 2 x 2 cells, then cell by cell between the first and the last block of a
-   row where they hit often enough (``min_coarse_share``); the rest of the points only at
+   row where they hit often enough (``probe_share``); the rest of the points only at
    cells where those do (along the span at once where many do), or else a
    quarter at a time, and no further once the cell cannot beat the template's best or the
    ``ranked_templates``-th best template so far (which the stages never reach down to).
@@ -71,6 +71,10 @@ MAX_ONE_DIRECTION_SHARE = 0.8
 #: the kernel counts all points along a span of cells once more than 1 in this many cells of
 #: the span pass the probes (textured images): 1.5-2.8x faster there than cell by cell
 DENSE_ROW_SHARE = 8
+#: a position passes the probes only if their hits beat the response maps' density (the share
+#: of points that hit anywhere by chance) by this much, when that asks more than
+#: ``min_coarse_share``: on the LM-O photos the maps are half set and every position passed
+CHANCE_MARGIN = 0.25
 
 
 class TemplateLibrary:
@@ -369,7 +373,7 @@ class TemplateSearch:
                               size_index=np.tile(np.arange(len(sizes)), len(views) * len(angles)), factor=factor)
         def run(chunk: slice) -> None:
             score_templates(maps.maps, maps.bounds, pad, dx[chunk], dy[chunk], bins[chunk], result.size_index[chunk],
-                            chance, lib.n_points // PROBE_STRIDE, p.min_coarse_share, ranked_templates(p),
+                            chance, lib.n_points // PROBE_STRIDE, probe_share(maps, p), ranked_templates(p),
                             result.score[chunk], result.y[chunk], result.x[chunk])
 
         pool.map(run, pool.split(n))
@@ -438,6 +442,15 @@ class CoarseResult:
         """The templates' best positions in pixels (the centres of their cells)."""
         half = (self.factor - 1) / 2.0
         return self.x * self.factor + half, self.y * self.factor + half
+
+
+def probe_share(maps: ResponseMaps, p: SearchParams) -> float:
+    """The share of a template's probe points that must hit for a position to be counted
+    further: ``min_coarse_share``, or on maps so dense that random points hit nearly that
+    often (texture) their density plus ``CHANCE_MARGIN``."""
+    hc, wc = maps.shape
+    density = float(maps.maps[:, maps.pad:maps.pad + hc, maps.pad:maps.pad + wc].mean())
+    return max(p.min_coarse_share, density + CHANCE_MARGIN)
 
 
 def ranked_templates(p: SearchParams) -> int:
