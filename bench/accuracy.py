@@ -210,6 +210,17 @@ def print_tables(rows: list[dict]) -> None:
         print(f"| {condition} | " + " | ".join(cells) + " |")
 
 
+def print_found(rows: list[dict]) -> None:
+    """Per set, how many images a pose was reported for and how many of those were right
+    (up to symmetry): what a user of the found poses sees."""
+    print("\n| set | images | found | right (up to symmetry) | right of found |\n|---|---|---|---|---|")
+    for name in sorted({row["set"] for row in rows}, reverse=True):
+        images = [i for row in rows if row["set"] == name for i in row["images"]]
+        found = [i for i in images if i["found"]]
+        right = sum(i.get("success_sym", i.get("success", False)) for i in found)
+        print(f"| {name} | {len(images)} | {len(found)} | {right} | {right / max(len(found), 1):.2f} |")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--n", type=int, default=24, help="images per part and condition (default 24)")
@@ -237,7 +248,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.report:
         rows = [row for path in args.report for row in json.loads(path.read_text())["rows"]]
-        print_tables([at_min_confidence(row, args.min_confidence) for row in rows])
+        rows = [at_min_confidence(row, args.min_confidence) for row in rows]
+        print_tables(rows)
+        print_found(rows)
         return 0
     if args.n < 1 or args.start < 0:
         parser.error("--n must be at least 1 and --start not negative")
