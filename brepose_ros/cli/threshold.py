@@ -5,8 +5,9 @@ clutter (a detection there is correct when the pose succeeds: rotation < 5 degre
 translation < 5 % of the diameter), and N clean images of each part of --others, where any
 detection is wrong. The part's estimator runs on all of them; for each threshold on the score,
 precision = correct detections / all detections and recall = correct detections / images of
-the part. Prints the table and the lowest min_score whose precision reaches --precision, and
-writes it into an estimator parameter file for brepose-estimate --params and the node.
+the part. Prints the table, the same for the confidence (pose.min_confidence), and the
+lowest min_score whose precision reaches --precision, and writes that min_score into an
+estimator parameter file for brepose-estimate --params and the node.
 """
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ POSITIVES = {"clean": SceneConfig(), "30 % occluded among clutter": SceneConfig(
 DEFAULT_OTHERS = [f"{BUILTIN_PREFIX}{name}" for name in ("cube", "cylinder", "sample_bracket")]
 #: the rows of the printed table
 THRESHOLDS = np.round(np.arange(0.3, 1.0, 0.05), 2)
+CONFIDENCES = np.round(np.arange(0.1, 1.0, 0.1), 2)
 
 
 def parse_args(argv=None):
@@ -72,13 +74,14 @@ def main(argv=None) -> int:
                       for i, config in enumerate(POSITIVES.values())]
             scenes += [(generate_scene(model_step(other, folder), folder / f"other_{i}", args.n, args.seed), False)
                        for i, other in enumerate(args.others)]
-            scores, correct = [], []
+            scores, confidences, correct = [], [], []
             with tqdm(total=args.n * len(scenes), unit="image", disable=args.quiet, desc="estimating") as bar:
                 for scene, positive in scenes:
                     mesh = tessellate(load_step(scene.step))
                     model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
                     for result in evaluate_scene(scene, estimator, model, on_image=lambda *_: bar.update(1)):
                         scores.append(result.estimate.score)
+                        confidences.append(result.estimate.confidence)
                         correct.append(positive and bool(result.errors and result.errors.success))
         estimator.close()
         n_part = args.n * len(POSITIVES)
@@ -87,6 +90,7 @@ def main(argv=None) -> int:
               f"({' '.join(args.others)})\n\n| min_score | detections | precision | recall |\n|---|---|---|---|")
         for row in zip(THRESHOLDS, detections, precision, recall):
             print("| {:.2f} | {} | {:.2f} | {:.2f} |".format(*row))
+        print_confidence(confidences, correct, n_part, args.precision)
         lowest_kept = calibrate_min_score(scores, correct, args.precision)
         if lowest_kept is None:
             print(f"\nno threshold reaches precision {args.precision:g}: the part's right poses score no higher "
@@ -107,6 +111,20 @@ def main(argv=None) -> int:
         return 0
 
     return run(job)
+
+
+def print_confidence(confidences, correct, n_part: int, target: float) -> None:
+    """The same table for the confidence (the probability that the pose is right,
+    online/confidence.py), and the pose.min_confidence that reaches the precision."""
+    precision, recall, detections = precision_recall(confidences, correct, n_part, CONFIDENCES)
+    print("\nthe same against the confidence (pose.min_confidence, with pose.min_score 0):\n\n"
+          "| min_confidence | detections | precision | recall |\n|---|---|---|---|")
+    for row in zip(CONFIDENCES, detections, precision, recall):
+        print("| {:.2f} | {} | {:.2f} | {:.2f} |".format(*row))
+    lowest = calibrate_min_score(confidences, correct, target)
+    if lowest is not None:
+        (p,), (r,), _ = precision_recall(confidences, correct, n_part, [lowest])
+        print(f"\nmin_confidence {lowest:.3f} reaches precision {p:.2f} with recall {r:.2f}")
 
 
 def write_params(path: Path, params: EstimatorParams, command: str) -> None:

@@ -51,7 +51,8 @@ def draw_segments(canvas: np.ndarray, segments: np.ndarray, color, thickness: in
 
 def caption(estimate: Estimate, label: str = "") -> str:
     state = "found" if estimate.found else "not found"
-    text = (f"{state}  score {estimate.score:.2f}  error ratio {estimate.error_ratio:.2f}"
+    text = (f"{state}  score {estimate.score:.2f}  confidence {estimate.confidence:.2f}"
+            f"  error ratio {estimate.error_ratio:.2f}"
             f"  view {estimate.view_index}  edges {estimate.n_image_segments}"
             f"  matched {estimate.n_matched}")
     if estimate.ambiguous:  # the image cannot tell the pose from a symmetric twin
