@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from brepose_ros.online import scoring
+from brepose_ros.online import kernels, scoring
 from brepose_ros.online.image_edges import EdgeParams, canny_from_gradients, gradients
 from brepose_ros.params import PoseParams
 
@@ -97,17 +97,14 @@ def test_a_pose_in_dense_random_clutter_scores_near_zero():
 
 
 def test_an_edge_pixel_pairs_with_a_model_point_only_if_it_runs_alike():
-    """The polish's pairing (EdgeEvidence.nearest_edges): a point 2 px below a horizontal
-    image edge finds it for a horizontal model edge, not for a vertical one."""
+    """The edge alignment's pairing (kernels.nearest_like_edge): a point 2 px below a
+    horizontal image edge finds it for a horizontal model edge, not for a vertical one."""
     gray = np.full((240, 320), 50, np.float32)
     gray[120:] = 200
     evidence = scoring.EdgeEvidence(*edge_stage(gray))
-    point = np.array([[200.0, 121.0]])
-    horizontal = evidence.orientation_bin(np.array([[[0.0, 0.0], [1.0, 0.0]]]))
-    vertical = evidence.orientation_bin(np.array([[[0.0, 0.0], [0.0, 1.0]]]))
-    edge, found = evidence.nearest_edges(point, horizontal, radius_px=2.0)
-    assert found.tolist() == [True] and edge.tolist() == [[200.0, 119.0]]
-    assert evidence.nearest_edges(point, vertical, radius_px=2.0)[1].tolist() == [False]
+    horizontal, vertical = evidence.orientation_bin(np.array([[[0.0, 0.0], [1.0, 0.0]], [[0.0, 0.0], [0.0, 1.0]]]))
+    assert kernels.nearest_like_edge(*evidence.nearest_like(), horizontal, 200.0, 121.0, 2.0) == (True, 200.0, 119.0)
+    assert not kernels.nearest_like_edge(*evidence.nearest_like(), vertical, 200.0, 121.0, 2.0)[0]
 
 
 def edge_stage(gray):

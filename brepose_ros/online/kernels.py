@@ -178,15 +178,7 @@ def refine_rounds_kernel(R: np.ndarray, t: np.ndarray, view_directions: np.ndarr
         for factor in factors:
             if not t[b, 2] > 0:
                 break
-            # the view the camera sees the part from: the largest product with R^T t + c
-            dx = model_center[0] + R[b, 0, 0] * t[b, 0] + R[b, 1, 0] * t[b, 1] + R[b, 2, 0] * t[b, 2]
-            dy = model_center[1] + R[b, 0, 1] * t[b, 0] + R[b, 1, 1] * t[b, 1] + R[b, 2, 1] * t[b, 2]
-            dz = model_center[2] + R[b, 0, 2] * t[b, 0] + R[b, 1, 2] * t[b, 1] + R[b, 2, 2] * t[b, 2]
-            view, most = 0, -np.inf
-            for v in range(len(view_directions)):
-                product = view_directions[v, 0] * dx + view_directions[v, 1] * dy + view_directions[v, 2] * dz
-                if product > most:
-                    view, most = v, product
+            view = _nearest_view(R[b], t[b], view_directions, model_center)
             lo, hi = seg_offsets[view], seg_offsets[view + 1]
             for s in range(hi - lo):
                 for e in range(2):
@@ -287,6 +279,9 @@ def warm_up() -> None:
     chamfer_scores_kernel(np.zeros((6, 4, 4), np.float32), np.zeros((1, 2, 2), np.float32),
                           np.zeros((1, 2), np.float32), 1, np.zeros(1, np.int64), phis, np.cos(phis), np.sin(phis),
                           2.0, 1.0, 0.25, np.empty((1, 2), np.float32))
+    align_on_edges_kernel(R, t, np.array([[2.0]]), np.array([[0.0, 0.0, -1.0]]), np.zeros(3), np.array([0, 4]), square,
+                          np.ones(4), np.array([100.0, 100.0, 2.0, 2.0]), np.zeros(8), np.zeros((8, 4, 4), np.int32),
+                          np.zeros((1, 2)), 3.0, 12, 3, np.zeros((1, 6, 6)), np.zeros(1))
     near, edges = np.zeros((8, 6, 6), np.uint8), np.zeros((4, 4), np.uint8)
     pose_evidence_kernel(segments * 3.0, np.array([0, 2]), 1.0, near, np.zeros((8, 6, 6), np.float32), edges, 1.0,
                          1.0, 0.2, 2, 1, np.zeros((1, 5)), np.zeros((0, 0), np.uint8))
@@ -454,8 +449,7 @@ def _pose_evidence(model_px: np.ndarray, near: np.ndarray, chance: np.ndarray, e
         length = math.sqrt(dx * dx + dy * dy)
         count = min(max(int(math.ceil(length / 2.0)), 1), 2000)
         weight = length / count
-        angle = math.atan2(dy, dx) % math.pi
-        b = int(angle / math.pi * bins) % bins
+        b = _direction_bin(dx, dy, bins)
         for j in range(count):
             frac = (j + 0.5) / count
             px, py = ax + frac * dx, ay + frac * dy
@@ -526,3 +520,162 @@ def _pose_evidence(model_px: np.ndarray, near: np.ndarray, chance: np.ndarray, e
                     out[4] += 1.0
                 if labels.shape[0] > 0:
                     labels[y, x] = 2 if drawn[y - y0, x - x0] else 1
+
+
+@njit(nogil=True, cache=True)
+def _nearest_view(R: np.ndarray, t: np.ndarray, view_directions: np.ndarray, model_center: np.ndarray) -> int:
+    """``AspectGraph.nearest_views`` of one pose R (3, 3), t (3,): the view the camera sees
+    the part from, the largest product with R^T t + c."""
+    dx = model_center[0] + R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2]
+    dy = model_center[1] + R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2]
+    dz = model_center[2] + R[0, 2] * t[0] + R[1, 2] * t[1] + R[2, 2] * t[2]
+    view, most = 0, -np.inf
+    for v in range(len(view_directions)):
+        product = view_directions[v, 0] * dx + view_directions[v, 1] * dy + view_directions[v, 2] * dz
+        if product > most:
+            view, most = v, product
+    return view
+
+
+@njit(nogil=True, cache=True)
+def project_point(x: float, y: float, z: float, intrinsics: np.ndarray, distortion: np.ndarray) -> tuple[float, float]:
+    """``Camera.project_model`` of one camera-frame point: ``Camera.project`` without
+    distortion, else OpenCV's ``projectPoints`` arithmetic (``distortion`` the 8 rational
+    model coefficients k1 k2 p1 p2 k3 k4 k5 k6, zeros where the camera has fewer)."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    if not distortion.any():
+        return fx * x / z + cx, fy * y / z + cy
+    k = distortion
+    inverse = 1.0 / z if z != 0.0 else 1.0
+    x, y = x * inverse, y * inverse
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    r6 = r4 * r2
+    a1, a2, a3 = 2.0 * x * y, r2 + 2.0 * x * x, r2 + 2.0 * y * y
+    radial = 1.0 + k[0] * r2 + k[1] * r4 + k[4] * r6
+    inverse_radial = 1.0 / (1.0 + k[5] * r2 + k[6] * r4 + k[7] * r6)
+    xd = x * radial * inverse_radial + k[2] * a1 + k[3] * a2
+    yd = y * radial * inverse_radial + k[2] * a3 + k[3] * a1
+    return xd * fx + cx, yd * fy + cy
+
+
+@njit(nogil=True, cache=True)
+def undistort_point(u: float, v: float, intrinsics: np.ndarray, distortion: np.ndarray) -> tuple[float, float]:
+    """``Camera.undistort`` of one pixel: OpenCV's ``undistortPoints`` arithmetic (5
+    fixed-point iterations) with distortion, a plain division without."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    if not distortion.any():
+        return (u - cx) / fx, (v - cy) / fy
+    x0, y0 = (u - cx) * (1.0 / fx), (v - cy) * (1.0 / fy)
+    x, y = x0, y0
+    k = distortion
+    for _ in range(5):
+        r2 = x * x + y * y
+        inverse = (1.0 + ((k[7] * r2 + k[6]) * r2 + k[5]) * r2) / (1.0 + ((k[4] * r2 + k[1]) * r2 + k[0]) * r2)
+        if inverse < 0.0:
+            return x0, y0
+        delta_x = 2.0 * k[2] * x * y + k[3] * (r2 + 2.0 * x * x)
+        delta_y = k[2] * (r2 + 2.0 * y * y) + 2.0 * k[3] * x * y
+        x, y = (x0 - delta_x) * inverse, (y0 - delta_y) * inverse
+    return x, y
+
+
+@njit(nogil=True, cache=True)
+def align_on_edges_kernel(R: np.ndarray, t: np.ndarray, radii: np.ndarray, view_directions: np.ndarray,
+                          model_center: np.ndarray, seg_offsets: np.ndarray, seg_3d: np.ndarray,
+                          seg_weights: np.ndarray, intrinsics: np.ndarray, distortion: np.ndarray,
+                          labels: np.ndarray, pixels: np.ndarray, spacing: float, min_points: int, iterations: int,
+                          normal_out: np.ndarray, variance_out: np.ndarray) -> None:
+    """``refinement.align_on_edges`` of poses R (B, 3, 3), t (B, 3), in place: per pose
+    and pairing k with ``radii[b, k]`` > 0, the visible segments of the nearest view
+    projected (``project_point``), a point every ``spacing`` pixels along each, paired with the
+    nearest like-oriented edge pixel (``labels`` (BINS, H, W) rows of ``pixels`` (L, 2),
+    ``EdgeEvidence.nearest_like``) within the radius, the line through that pixel along the
+    model edge (``undistort_point``), then ``iterations`` Gauss-Newton steps with Huber at
+    half the radius, each pair weighted by its segment's ``seg_weights``. A pose behind the
+    camera, or pairing fewer than ``min_points``, stops for good. normal_out (B, 6, 6) and
+    variance_out (B,) as ``refine_poses_kernel``'s. One call per chunk of poses, GIL
+    released: as numpy it was some thirty array steps per pairing, holding the GIL.
+    """
+    bins = labels.shape[0]
+    focal = (intrinsics[0] + intrinsics[1]) / 2.0
+    for b in range(len(R)):
+        for k in range(radii.shape[1]):
+            depth = R[b, 2, 0] * model_center[0] + R[b, 2, 1] * model_center[1] + R[b, 2, 2] * model_center[2]
+            if not depth + t[b, 2] > 0:
+                break
+            radius = radii[b, k]
+            if not radius > 0:
+                continue
+            view = _nearest_view(R[b], t[b], view_directions, model_center)
+            lo, hi = seg_offsets[view], seg_offsets[view + 1]
+            # the points of every segment first, to size the arrays of the pairs
+            ends = np.empty((hi - lo, 2, 2))
+            counts = np.empty(hi - lo, np.int64)
+            for s in range(hi - lo):
+                for e in range(2):
+                    px, py, pz = seg_3d[lo + s, e, 0], seg_3d[lo + s, e, 1], seg_3d[lo + s, e, 2]
+                    ends[s, e, 0], ends[s, e, 1] = project_point(
+                        R[b, 0, 0] * px + R[b, 0, 1] * py + R[b, 0, 2] * pz + t[b, 0],
+                        R[b, 1, 0] * px + R[b, 1, 1] * py + R[b, 1, 2] * pz + t[b, 1],
+                        R[b, 2, 0] * px + R[b, 2, 1] * py + R[b, 2, 2] * pz + t[b, 2], intrinsics, distortion)
+                dx, dy = ends[s, 1, 0] - ends[s, 0, 0], ends[s, 1, 1] - ends[s, 0, 1]
+                counts[s] = max(int(max(math.hypot(dx, dy), 1e-12) // spacing), 1)
+            total = counts.sum()
+            points = np.empty((total, 3))
+            lines = np.empty((total, 3))
+            weights = np.empty(total)
+            found = 0
+            for s in range(hi - lo):
+                dx, dy = ends[s, 1, 0] - ends[s, 0, 0], ends[s, 1, 1] - ends[s, 0, 1]
+                length = max(math.hypot(dx, dy), 1e-12)
+                ux, uy = dx / length, dy / length
+                direction = _direction_bin(dx, dy, bins)
+                a, c = seg_3d[lo + s, 0], seg_3d[lo + s, 1]
+                for j in range(counts[s]):
+                    frac = (j + 0.5) / counts[s]
+                    qx, qy, qz = a[0] + frac * (c[0] - a[0]), a[1] + frac * (c[1] - a[1]), a[2] + frac * (c[2] - a[2])
+                    u, v = project_point(R[b, 0, 0] * qx + R[b, 0, 1] * qy + R[b, 0, 2] * qz + t[b, 0],
+                                     R[b, 1, 0] * qx + R[b, 1, 1] * qy + R[b, 1, 2] * qz + t[b, 1],
+                                     R[b, 2, 0] * qx + R[b, 2, 1] * qy + R[b, 2, 2] * qz + t[b, 2], intrinsics,
+                                     distortion)
+                    near, ex, ey = nearest_like_edge(labels, pixels, direction, u, v, radius)
+                    if not near:
+                        continue
+                    points[found, 0], points[found, 1], points[found, 2] = qx, qy, qz
+                    x0, y0 = undistort_point(ex - ux, ey - uy, intrinsics, distortion)
+                    x1, y1 = undistort_point(ex + ux, ey + uy, intrinsics, distortion)
+                    # ``lines2d.line_equations`` of the segment through the two
+                    sx, sy = x1 - x0, y1 - y0
+                    norm = max(math.sqrt(sx * sx + sy * sy), 1e-12)
+                    lines[found, 0], lines[found, 1] = -sy / norm, sx / norm
+                    lines[found, 2] = -(lines[found, 0] * x0 + lines[found, 1] * y0)
+                    weights[found] = seg_weights[lo + s]
+                    found += 1
+            if total and found < min_points:
+                break
+            if found >= 3:
+                _gauss_newton(R[b], t[b], points, lines, 1, weights, 0, found, 0.5 * radius / focal, iterations,
+                              normal_out[b], variance_out[b:b + 1])
+
+
+@njit(nogil=True, cache=True)
+def nearest_like_edge(labels: np.ndarray, pixels: np.ndarray, direction: int, u: float, v: float,
+                      radius: float) -> tuple[bool, float, float]:
+    """For a point (u, v), pixels, on a model edge of direction bin ``direction``: whether
+    the nearest edge pixel that runs alike (``EdgeEvidence.nearest_like``'s ``labels``
+    rows of ``pixels``) lies within ``radius``, and where. An edge pixel of another
+    direction nearer to the point does not hide it: a pose 10 degrees off sits among the
+    part's crossing edges."""
+    col, row = int(np.rint(u)), int(np.rint(v))
+    if not (0 <= col < labels.shape[2] and 0 <= row < labels.shape[1]):
+        return False, 0.0, 0.0
+    edge = labels[direction, row, col]
+    ex, ey = pixels[edge, 0], pixels[edge, 1]
+    return math.hypot(ex - u, ey - v) <= radius, ex, ey
+
+
+@njit(nogil=True, cache=True)
+def _direction_bin(dx: float, dy: float, bins: int) -> int:
+    """The direction bin (of ``bins`` over pi) of a segment running (dx, dy)."""
+    return int(math.atan2(dy, dx) % math.pi / math.pi * bins) % bins

@@ -50,9 +50,9 @@ from ..geometry import rot_z, rotation_angle_deg, rotation_between
 from ..params import PoseParams
 from .frame import Frame
 from .hypotheses import Hypothesis
-from .kernels import refine_poses_kernel, refine_rounds_kernel
-from .lines2d import NEAREST_MAX_ANGLE_DEG, cos_deg, line_equations, samples_along
-from .scoring import CLEAR_SCORE, pose_scores, project_each, visible_rows
+from .kernels import align_on_edges_kernel, refine_poses_kernel, refine_rounds_kernel
+from .lines2d import NEAREST_MAX_ANGLE_DEG, cos_deg, line_equations
+from .scoring import CLEAR_SCORE, pose_scores
 from .workers import SERIAL, WorkerPool
 
 
@@ -183,9 +183,15 @@ def refine_poses(R: np.ndarray, t: np.ndarray, model_3d: np.ndarray, image_2d: n
                         np.broadcast_to(np.asarray(f_scale, dtype=float), len(R)).copy(), int(iterations), normal,
                         variance)
     if covariance_out is not None:
-        for b in np.nonzero(np.isfinite(variance))[0]:
-            covariance_out[b] = variance[b] * np.linalg.pinv(normal[b])[TRANSLATION_FIRST][:, TRANSLATION_FIRST]
+        _covariances(normal, variance, covariance_out)
     return R, t
+
+
+def _covariances(normal: np.ndarray, variance: np.ndarray, out: np.ndarray) -> None:
+    """``refine_poses``' covariances from the kernels' normal matrices (B, 6, 6) and residual
+    variances (B,), into ``out`` (B, 6, 6) where the variance is finite (a pose took a step)."""
+    for b in np.nonzero(np.isfinite(variance))[0]:
+        out[b] = variance[b] * np.linalg.pinv(normal[b])[TRANSLATION_FIRST][:, TRANSLATION_FIRST]
 
 
 def align_on_edges(R: np.ndarray, t: np.ndarray, graph: AspectGraph, frame: Frame, *, radii: np.ndarray,
@@ -196,51 +202,29 @@ def align_on_edges(R: np.ndarray, t: np.ndarray, graph: AspectGraph, frame: Fram
 
     Points every ``EDGE_SPACING_PIXELS`` along the model segments visible at the pose are
     paired with their nearest like-oriented edge pixel within the radius
-    (``EdgeEvidence.nearest_edges``) and pulled onto the line through it along the model
-    edge (Huber at half the radius: farther pairs are as likely wrong), weighted by the
-    segment's kind (``EDGE_KIND_WEIGHTS``); ``EDGE_ITERATIONS`` Gauss-Newton steps per
-    pairing. Every projected edge speaks, where the line refinement only hears edges the
-    line detector found (6-12 on the rounded bracket, whose arcs and holes give no Hough
-    lines). The poses pair together and refine in one call, each with its own radius (a
-    pose refines to the same bits alone or in a batch). A pose with fewer than ``MIN_EDGE_POINTS`` pairs,
-    or behind the camera, stops where it is. ``covariance_out`` (B, 6, 6) receives each
-    pose's covariance of its last step (``refine_poses``).
+    (``kernels.nearest_like_edge`` on ``EdgeEvidence.nearest_like``) and pulled onto the
+    line through it along the model edge (Huber at half the radius: farther pairs are as
+    likely wrong), weighted by the segment's kind (``EDGE_KIND_WEIGHTS``);
+    ``EDGE_ITERATIONS`` Gauss-Newton steps per pairing. Every projected edge speaks, where
+    the line refinement only hears edges the line detector found (6-12 on the rounded
+    bracket, whose arcs and holes give no Hough lines). A pose with fewer than
+    ``MIN_EDGE_POINTS`` pairs, or behind the camera, stops where it is. All in one compiled
+    call (``kernels.align_on_edges_kernel``, GIL released), each pose alone: as numpy array
+    steps per pairing it was the refinement's largest share and held the GIL.
+    ``covariance_out`` (B, 6, 6) receives each pose's covariance of its last step
+    (``refine_poses``).
     """
-    camera, evidence = frame.camera, frame.evidence
+    camera, (labels, pixels) = frame.camera, frame.evidence.nearest_like()
     R, t = np.array(R, dtype=float), np.array(t, dtype=float)
-    going = np.ones(len(R), bool)
-    for k in range(radii.shape[1]):
-        going &= (np.einsum("bij,j->bi", R, graph.model_center) + t)[:, 2] > 0
-        stepping = np.nonzero(going & (radii[:, k] > 0))[0]
-        if not len(stepping):
-            continue
-        # the visible segments of every stepping pose at once, each row tagged with its pose
-        rows, pose_of_row = visible_rows(graph, R[stepping], t[stepping])
-        pose_of_row = stepping[pose_of_row]
-        model_3d = graph.seg_3d[rows]
-        ends_px = project_each(camera, model_3d, R[pose_of_row], t[pose_of_row])
-        delta = ends_px[:, 1] - ends_px[:, 0]
-        lengths = np.maximum(np.hypot(delta[:, 0], delta[:, 1]), 1e-12)
-        segment, frac = samples_along(np.maximum((lengths // EDGE_SPACING_PIXELS).astype(int), 1))
-        pose_of = pose_of_row[segment]
-        points = model_3d[segment, 0] + frac[:, None] * (model_3d[segment, 1] - model_3d[segment, 0])
-        edge, found = evidence.nearest_edges(project_each(camera, points, R[pose_of], t[pose_of]),
-                                             evidence.orientation_bin(ends_px)[segment], radii[pose_of, k])
-        paired = np.unique(pose_of)
-        going[paired] &= np.bincount(pose_of[found], minlength=len(R))[paired] >= MIN_EDGE_POINTS
-        found &= going[pose_of]
-        direction = (delta / lengths[:, None])[segment[found]]
-        lines = camera.undistort(np.stack([edge[found] - direction, edge[found] + direction], axis=1))
-        points, pose_of = points[found], pose_of[found]
-        weights = EDGE_KIND_WEIGHTS[graph.seg_kind[rows[segment[found]]]]
-        group = np.unique(pose_of)  # pose_of is sorted: each pose's pairs lie together
-        spans = np.append(np.searchsorted(pose_of, group), len(pose_of))
-        covariance = None if covariance_out is None else covariance_out[group]
-        R[group], t[group] = refine_poses(R[group], t[group], points[:, None], lines, spans,
-                                          f_scale=0.5 * radii[group, k] / camera.focal, iterations=EDGE_ITERATIONS,
-                                          weights=weights, covariance_out=covariance)
-        if covariance_out is not None:
-            covariance_out[group] = covariance
+    distortion = np.zeros(8)
+    distortion[:len(camera.dist_coeffs)] = camera.dist_coeffs
+    normal, variance = np.zeros((len(R), 6, 6)), np.full(len(R), np.nan)
+    align_on_edges_kernel(R, t, np.ascontiguousarray(radii, dtype=float), graph.view_directions, graph.model_center,
+                          graph.seg_offsets, graph.seg_3d, EDGE_KIND_WEIGHTS[graph.seg_kind],
+                          np.array([camera.fx, camera.fy, camera.cx, camera.cy]), distortion, labels, pixels,
+                          EDGE_SPACING_PIXELS, MIN_EDGE_POINTS, EDGE_ITERATIONS, normal, variance)
+    if covariance_out is not None:
+        _covariances(normal, variance, covariance_out)
     return R, t
 
 

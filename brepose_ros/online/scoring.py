@@ -294,20 +294,6 @@ class EdgeEvidence:
             self._near_like[tolerance_px] = near.view(bool)  # 0/1 bytes, dilated from 0/1
         return self._near_like[tolerance_px]
 
-    def nearest_edges(self, points_px: np.ndarray, bins: np.ndarray,
-                      radius_px: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For points (N, 2) on model edges of direction ``bins`` (N,): the nearest edge
-        pixel that runs alike (its direction bin within one of the point's) (N, 2), x and y,
-        and whether it lies within ``radius_px`` (one, or one per point). An edge pixel of
-        another direction nearer to the point does not hide it: a pose 10 degrees off sits
-        among the part's crossing edges."""
-        labels, pixels = self.nearest_like()
-        h, w = self.shape
-        x, y = np.rint(points_px).astype(int).T
-        inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-        edge = pixels[labels[bins, np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)]]
-        return edge, inside & (np.hypot(*(edge - points_px).T) <= radius_px)
-
     def nearest_like(self) -> tuple[np.ndarray, np.ndarray]:
         """Per direction bin and pixel, the nearest pixel of ``like_edges``: (BINS, H, W)
         int32 rows of the (L, 2) float pixel table (x, y; row 0 lies far outside the image,
