@@ -367,7 +367,9 @@ def test_only_the_newest_frame_is_processed(ros):
     ({"graphs": ["a.brepose.npz", "b.brepose.npz"], "part_names": ["a"]}, "one name per graph"),
     ({"graphs": ["a.brepose.npz"], "part_names": ["a/b"]}, "must start with a letter"),
     ({"graphs": ["a.brepose.npz"], "fx": 500}, "fx"),
-], ids=["no-graphs", "refused", "names", "topic", "type"])
+    ({"graphs": ["a.brepose.npz"], "pose.confidence_file": "/nonexistent/c.yaml"},
+     "calibration file /nonexistent/c.yaml does not exist"),
+], ids=["no-graphs", "refused", "names", "topic", "type", "calibration"])
 def test_startup_errors_are_clear(ros, parameters, message):
     with pytest.raises(StartupError, match=message):
         start(ros, **parameters)
@@ -421,6 +423,7 @@ def test_a_parameter_change_waits_for_the_image_in_flight(ros):
     ("fx", -1.0, "range"),
     ("max_image_pixels", 0, "range"),
     ("image_transport", "compressed", "read-only"),
+    ("pose.confidence_file", "/nonexistent/calibration.yaml", "calibration file"),
 ])
 def test_out_of_range_values_are_refused_at_run_time_with_the_reason(ros, name, value, reason):
     node = start(ros)

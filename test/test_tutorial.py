@@ -124,6 +124,7 @@ def test_every_tutorial_command_runs(user_folder):
                      output("brepose-estimate"), re.MULTILINE)
     assert len(list((user_folder / "checks").glob("*.png"))) == IMAGES
     assert "| 0.80 |" in output("brepose-threshold") and "min_score:" in (user_folder / "my_part.yaml").read_text()
+    assert "| min_confidence | detections | precision | recall |" in output("brepose-threshold")
     assert f"the node answered {IMAGES}" in output("python launch_free_scripts/play_bag.py")
     recorded = json.loads((user_folder / "node_poses.json").read_text())
     assert sorted(p["image"] for p in recorded) == sorted(f"images/{i:06d}.png" for i in range(IMAGES))

@@ -79,6 +79,7 @@ from ..aspect_graph import AspectGraph
 from ..camera import Camera, CameraError
 from ..evaluation.overlay import draw_overlay
 from ..image_codec import MAX_IMAGE_PIXELS, camera_from_info
+from ..online.confidence import load_calibration
 from ..online.estimator import Estimate, Estimator
 from ..online.workers import WorkerPool
 from ..params import EstimatorParams, field_docs, field_ranges, one_line
@@ -375,7 +376,9 @@ class EstimatorNode(Node):
     def _estimator_params(self) -> EstimatorParams:
         names = EstimatorParams().flat()
         try:
-            return EstimatorParams().with_flat({n: self.get_parameter(n).value for n in names})
+            params = EstimatorParams().with_flat({n: self.get_parameter(n).value for n in names})
+            load_calibration(params.pose.confidence_file)
+            return params
         except ValueError as exc:
             raise StartupError(f"estimator parameters: {exc}") from None
 
@@ -418,11 +421,13 @@ class EstimatorNode(Node):
     # -- parameters at run time -------------------------------------------------------------
 
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        """Refuse a change that EstimatorParams would not accept (rclpy has checked types,
-        ranges and read-only already), with its reason."""
+        """Refuse a change that EstimatorParams would not accept, or a confidence calibration
+        file that cannot be used (rclpy has checked types, ranges and read-only already), with
+        its reason: the estimators would refuse it under the worker."""
         flat = EstimatorParams().flat()
         try:
-            self.params.with_flat({p.name: p.value for p in parameters if p.name in flat})
+            changed = self.params.with_flat({p.name: p.value for p in parameters if p.name in flat})
+            load_calibration(changed.pose.confidence_file)
         except ValueError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
