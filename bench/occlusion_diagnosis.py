@@ -43,7 +43,7 @@ from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.image_edges import detect_edges  # noqa: E402
 from brepose_ros.online.refinement import Candidate, hypothesis_rounds  # noqa: E402
-from brepose_ros.online.scoring import pose_scores  # noqa: E402
+from brepose_ros.online.scoring import pose_scores, pose_shares  # noqa: E402
 from brepose_ros.online.symmetry import check_twins  # noqa: E402
 from brepose_ros.online.workers import SERIAL  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
@@ -67,9 +67,7 @@ def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> d
     R0, t0 = entry.R[None].astype(float), entry.t[None].astype(float)
     truth = float(pose_scores(g, R0, t0, frame, p.pose)[0])
     refined = refined_truth(estimator, frame, entry)
-    model_px = frame.camera.project_model(g.seg_3d[g.view_slice(g.nearest_view(refined.R, refined.t))],
-                                          refined.R, refined.t)
-    parts = frame.evidence.shares(model_px, p.pose.inlier_pixels, p.pose.min_margin_pixels)
+    parts = pose_shares(g, refined.R, refined.t, frame, p.pose)[0]
     refined_ok = pose_errors(refined.R, refined.t, entry.R, entry.t, model, g).success
     coarse = search.coarse(frame, p.search)
     near = near_templates(coarse, g, frame.camera, entry)

@@ -8,7 +8,9 @@ version at a time; here the package of ``COMMIT`` (extracted with ``git archive`
 imported under another name, its imports being relative) and this worktree's run image by
 image, their order turning every image, each ``Estimator.estimate`` timed from the image to
 the answer (edges included) at default parameters. Success is CONVENTIONS.md's (rotation
-< 5 degrees, translation < 5 % of the diameter, and found). Scenes are bench/accuracy.py's
+< 5 degrees, translation < 5 % of the diameter, and found), also up to the part's exact
+symmetries; a found pose that is wrong even up to them is a wrong detection (precision at
+``pose.min_score``). Scenes are bench/accuracy.py's
 (varied look, seed 100, cached in data/bench); per-image records go to
 data/bench/results/versions_ab_LABEL.json.
 """
@@ -91,12 +93,15 @@ def main(argv=None) -> int:
                         start = time.perf_counter()
                         estimate = estimator.estimate(image, scene.camera)
                         ms = 1000 * (time.perf_counter() - start)
-                        success = bool(estimate.found and pose_errors(estimate.R, estimate.t, entry.R, entry.t, model,
-                                                                      graph).success)
-                        row[label] = {"ms": ms, "success": success, "score": float(estimate.score)}
+                        errors = (pose_errors(estimate.R, estimate.t, entry.R, entry.t, model, graph)
+                                  if estimate.found else None)
+                        row[label] = {"ms": ms, "success": bool(errors and errors.success),
+                                      "success_sym": bool(errors and errors.success_sym),
+                                      "found": bool(estimate.found), "score": float(estimate.score)}
                     rows.append(row)
                     print(f"{name} {condition} {i}: " + "  ".join(
-                        f"{label} {int(row[label]['success'])} {row[label]['score']:.3f} {row[label]['ms']:.0f} ms"
+                        f"{label} {int(row[label]['success'])} {row[label]['score']:.3f} {row[label]['ms']:.0f} ms "
+                        f"(sym {int(row[label]['success_sym'])})"
                         for label in ("base", "new")), flush=True)
                     out.write_text(json.dumps(rows))
             for _, estimator, _ in estimators.values():
@@ -106,14 +111,17 @@ def main(argv=None) -> int:
 
 
 def print_table(rows: list[dict]) -> None:
-    print("\n| set | condition | images | success base -> new | median ms base -> new |")
-    print("|---|---|---|---|---|")
+    print("\n| set | condition | images | success base -> new | up to symmetry | found, wrong up to symmetry "
+          "| median ms base -> new |")
+    print("|---|---|---|---|---|---|---|")
     for key in dict.fromkeys((r["set"], r["condition"]) for r in rows):
         group = [r for r in rows if (r["set"], r["condition"]) == key]
-        success = [np.mean([r[v]["success"] for r in group]) for v in ("base", "new")]
+        success, sym = ([np.mean([r[v][k] for r in group]) for v in ("base", "new")]
+                        for k in ("success", "success_sym"))
+        wrong = [sum(r[v]["found"] and not r[v]["success_sym"] for r in group) for v in ("base", "new")]
         ms = [np.median([r[v]["ms"] for r in group]) for v in ("base", "new")]
         print(f"| {key[0]} | {key[1]} | {len(group)} | {success[0]:.2f} -> {success[1]:.2f} | "
-              f"{ms[0]:.0f} -> {ms[1]:.0f} |")
+              f"{sym[0]:.2f} -> {sym[1]:.2f} | {wrong[0]} -> {wrong[1]} | {ms[0]:.0f} -> {ms[1]:.0f} |")
 
 
 if __name__ == "__main__":

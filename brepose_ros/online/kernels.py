@@ -282,9 +282,10 @@ def warm_up() -> None:
     align_on_edges_kernel(R, t, np.array([[2.0]]), np.array([[0.0, 0.0, -1.0]]), np.zeros(3), np.array([0, 4]), square,
                           np.ones(4), np.array([100.0, 100.0, 2.0, 2.0]), np.zeros(8), np.zeros((8, 4, 4), np.int32),
                           np.zeros((1, 2)), 3.0, 12, 3, np.zeros((1, 6, 6)), np.zeros(1))
-    near, edges = np.zeros((8, 6, 6), np.uint8), np.zeros((4, 4), np.uint8)
-    pose_evidence_kernel(segments * 3.0, np.array([0, 2]), 1.0, near, np.zeros((8, 6, 6), np.float32), edges, 1.0,
-                         1.0, 0.2, 2, 1, np.zeros((1, 5)), np.zeros((0, 0), np.uint8))
+    near, edges = np.zeros((1, 8, 6, 6), np.uint8), np.zeros((4, 4), np.uint8)
+    pose_evidence_kernel(segments * 3.0, np.zeros(2, np.int64), np.array([0, 2]), 1.0, near,
+                         np.zeros((1, 8, 6, 6), np.float32), edges, np.ones(1), 1.0, 0.2, 2, 1, np.zeros((1, 5)),
+                         np.zeros((0, 0), np.uint8))
 
 
 @njit(nogil=True, cache=True)
@@ -338,11 +339,13 @@ def _nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, i_ux: np.ndarray,
 
 
 @njit(nogil=True, cache=True)
-def pose_evidence_kernel(model_px: np.ndarray, spans: np.ndarray, min_size: float, near: np.ndarray,
-                         chance: np.ndarray, edges: np.ndarray, tolerance: float, min_margin: float,
-                         margin_share: float, cell: int, reach: int, out: np.ndarray, labels: np.ndarray) -> None:
+def pose_evidence_kernel(model_px: np.ndarray, reach_of: np.ndarray, spans: np.ndarray, min_size: float,
+                         near: np.ndarray, chance: np.ndarray, edges: np.ndarray, tolerances: np.ndarray,
+                         min_margin: float, margin_share: float, cell: int, reach: int, out: np.ndarray,
+                         labels: np.ndarray) -> None:
     """What ``scoring.EdgeEvidence.shares`` counts for B poses, into ``out`` (B, 5): pose b's
-    projected visible model segments are ``model_px[spans[b]:spans[b + 1]]`` (pixels).
+    projected visible model segments are ``model_px[spans[b]:spans[b + 1]]`` (pixels),
+    segment s looked up within ``tolerances[reach_of[s]]`` (``_pose_evidence``).
 
     A pose without segments, or whose segments span less than ``min_size`` pixels
     (diagonal of their box), keeps zeros. The rest are clipped a few image sizes out (a pose
@@ -366,8 +369,9 @@ def pose_evidence_kernel(model_px: np.ndarray, spans: np.ndarray, min_size: floa
         if math.hypot(x_hi - x_lo, y_hi - y_lo) < min_size:
             continue
         clipped = np.minimum(np.maximum(model_px[lo:hi], -4.0 * far), 5.0 * far)
-        _pose_evidence(clipped, near, chance, edges, grown_outline(clipped.reshape(-1, 2), min_margin, margin_share),
-                       tolerance, cell, reach, out[b], labels)
+        _pose_evidence(clipped, reach_of[lo:hi], near, chance, edges,
+                       grown_outline(clipped.reshape(-1, 2), min_margin, margin_share), tolerances, cell, reach, out[b],
+                       labels)
 
 
 @njit(nogil=True, cache=True)
@@ -414,16 +418,18 @@ def grown_outline(points: np.ndarray, min_margin: float, margin_share: float) ->
 
 
 @njit(nogil=True, cache=True)
-def _pose_evidence(model_px: np.ndarray, near: np.ndarray, chance: np.ndarray, edges: np.ndarray,
-                   outline: np.ndarray, tolerance: float, cell: int, reach: int, out: np.ndarray,
-                   labels: np.ndarray) -> None:
+def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray, chance: np.ndarray,
+                   edges: np.ndarray, outline: np.ndarray, tolerances: np.ndarray, cell: int, reach: int,
+                   out: np.ndarray, labels: np.ndarray) -> None:
     """What ``scoring.EdgeEvidence.shares`` counts for one pose, into ``out`` (5,).
 
-    model_px (S, 2, 2) the projected visible model segments, pixels; near (BINS, H + 2,
-    W + 2) 0/1 per direction bin, within ``tolerance`` of a like edge pixel, a False border
-    around the image;
-    chance (BINS, H + 2, W + 2) per direction bin the local share of such pixels, bordered
-    alike; edges (H, W) 0/1 the edge pixels; outline (P, 2) the grown convex outline's corners.
+    model_px (S, 2, 2) the projected visible model segments, pixels; segment s is looked up
+    within ``tolerances[reach_of[s]]`` pixels and drawn within ``tolerance = tolerances[0]``;
+    near (T, BINS, H + 2, W + 2) 0/1 per tolerance and direction bin, within that tolerance
+    of a like edge pixel, a False border around the image;
+    chance (T, BINS, H + 2, W + 2) per tolerance and direction bin the local share of such
+    pixels, bordered alike; edges (H, W) 0/1 the edge pixels; outline (P, 2) the grown convex
+    outline's corners.
 
     out[0] the model length sampled (a point every 2 pixels, at most 2,000 per segment),
     out[1] the length a like edge pixel confirms, out[2] the length chance would confirm;
@@ -438,7 +444,8 @@ def _pose_evidence(model_px: np.ndarray, near: np.ndarray, chance: np.ndarray, e
     when also counted in out[4] (pictures of what the explained share counts).
     """
     out[:] = 0.0
-    bins, height, width = near.shape[0], edges.shape[0], edges.shape[1]
+    bins, height, width = near.shape[1], edges.shape[0], edges.shape[1]
+    tolerance = tolerances[0]
     rows, cols = (height + cell - 1) // cell, (width + cell - 1) // cell
     cell_model = np.zeros((rows, cols))
     cell_confirmed = np.zeros((rows, cols))
@@ -450,19 +457,20 @@ def _pose_evidence(model_px: np.ndarray, near: np.ndarray, chance: np.ndarray, e
         count = min(max(int(math.ceil(length / 2.0)), 1), 2000)
         weight = length / count
         b = _direction_bin(dx, dy, bins)
+        k = reach_of[s]
         for j in range(count):
             frac = (j + 0.5) / count
             px, py = ax + frac * dx, ay + frac * dy
             x = min(max(int(np.rint(px)) + 1, 0), width + 1)
             y = min(max(int(np.rint(py)) + 1, 0), height + 1)
-            confirmed = near[b, y, x] != 0
+            confirmed = near[k, b, y, x] != 0
             out[0] += weight
-            out[2] += weight * chance[b, y, x]
+            out[2] += weight * chance[k, b, y, x]
             if confirmed:
                 out[1] += weight
             if 1 <= x <= width and 1 <= y <= height:
                 cell_model[(y - 1) // cell, (x - 1) // cell] += weight
-                cell_chance[(y - 1) // cell, (x - 1) // cell] += weight * chance[b, y, x]
+                cell_chance[(y - 1) // cell, (x - 1) // cell] += weight * chance[k, b, y, x]
                 if confirmed:
                     cell_confirmed[(y - 1) // cell, (x - 1) // cell] += weight
     # the outline's bounding box in the image

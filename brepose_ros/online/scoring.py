@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from ..aspect_graph import AspectGraph
+from ..offline.hidden_lines import SHARP
 from ..camera import Camera, project_normalised
 from ..params import EstimatorParams, PoseParams
 from .kernels import pose_evidence_kernel
@@ -49,7 +50,10 @@ def pose_scores(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame"
     model edge explains (so a pose too small, sitting on the part's inner edges, is
     punished); their F-measure weighed by how unlikely the confirmations are by chance.
     Nothing depends on the region a hypothesis came from, so hypotheses of all generators
-    compare. The poses are projected together and counted in one compiled call.
+    compare. The poses are projected together and counted in one compiled call. Outlines of
+    curved faces (not sharp edges) are soft silhouettes, whose image edge lies up to a few
+    pixels inside them where the face darkens at grazing light: they are looked up within
+    ``pose.outline_pixels``, the sharp edges within ``pose.inlier_pixels``.
     """
     ahead = np.nonzero(np.asarray(t)[:, 2] > 0)[0]
     rows, pose_of_row = visible_rows(graph, R[ahead], t[ahead])
@@ -57,7 +61,7 @@ def pose_scores(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame"
     spans = np.zeros(len(R) + 1, np.int64)
     spans[ahead + 1] = np.bincount(pose_of_row, minlength=len(ahead))
     counts = frame.evidence.counts(model_px, np.cumsum(spans), p.inlier_pixels, p.min_margin_pixels,
-                                   p.min_size_pixels)
+                                   p.min_size_pixels, graph.seg_kind[rows] != SHARP, p.outline_pixels)
     return np.array([frame.evidence.shares_of(c).score for c in counts])
 
 
@@ -83,12 +87,15 @@ def pose_shares(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame"
     """The ``Shares`` behind one pose's score (``pose_scores``, without its size floor), and
     the diagonal and the edge length of its projected visible model edges, pixels: what the
     estimate reports beside the score."""
-    model_px = frame.camera.project_model(graph.seg_3d[graph.visible_segments(R, t)], R, t)
+    rows = graph.visible_segments(R, t)
+    model_px = frame.camera.project_model(graph.seg_3d[rows], R, t)
+    shares = frame.evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels, graph.seg_kind[rows] != SHARP,
+                                   p.outline_pixels)
     if len(model_px) == 0:
-        return frame.evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels), 0.0, 0.0
+        return shares, 0.0, 0.0
     diagonal = float(np.hypot(*np.ptp(model_px.reshape(-1, 2), axis=0)))
     length = float(np.linalg.norm(model_px[:, 1] - model_px[:, 0], axis=1).sum())
-    return frame.evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels), diagonal, length
+    return shares, diagonal, length
 
 
 @dataclass
@@ -175,7 +182,10 @@ class EdgeEvidence:
         point's chance of being confirmed is the share of pixels near a like edge in the
         ``CHANCE_WINDOW`` square around it (``chance``, once per image), and the share is
         (confirmed - expected) / (length - expected). Dense clutter or texture confirms a
-        wrong pose by chance, and then expects as much: the share stays near 0.
+        wrong pose by chance, and then expects as much: the share stays near 0. Segments
+        marked *soft* are looked up within a tolerance of their own, their chance counted
+        at it (*explained* draws every segment within ``tolerance``: drawn wider too, the
+        left-out parts got more wrong detections among clutter, docs/results/wall.md).
       - *explained*: of the edge pixels inside the projected part's convex outline, grown
         by ``OUTLINE_MARGIN`` (at least ``min_margin_px``), those within ``tolerance`` of a
         projected model edge, counted only in *seen* cells (``SEEN_CELL`` squares where at
@@ -239,6 +249,7 @@ class EdgeEvidence:
             self.like_edges[(bins + step) % self.BINS, rows, cols] = 1
         self._near_like = {}  # tolerance -> like_edges dilated by its chamfer ball
         self._chance = {}  # tolerance -> chance()
+        self._stacked = {}  # tolerances -> stacked()
         self._nearest_like: tuple[np.ndarray, np.ndarray] | None = None  # nearest_like(), built on first use
         self._nearest_lock = threading.Lock()  # the refinement's threads share one image's evidence
 
@@ -321,10 +332,13 @@ class EdgeEvidence:
         ``kernels.grown_outline``)."""
         return grown_outline(np.asarray(points, np.float64).reshape(-1, 2), float(min_margin_px), cls.OUTLINE_MARGIN)
 
-    def shares(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float) -> "Shares":
+    def shares(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float,
+               soft: np.ndarray | None = None, soft_tolerance_px: float | None = None) -> "Shares":
         """The ``Shares`` of a pose's projected visible model segments ``model_px``
-        (S, 2, 2), pixels (class doc)."""
-        return self.shares_of(self.counts(model_px, np.array([0, len(model_px)]), tolerance_px, min_margin_px)[0])
+        (S, 2, 2), pixels (class doc); the segments marked ``soft`` (S,) bool, outlines of
+        curved faces, are looked up within ``soft_tolerance_px`` instead."""
+        return self.shares_of(self.counts(model_px, np.array([0, len(model_px)]), tolerance_px, min_margin_px,
+                                          soft=soft, soft_tolerance_px=soft_tolerance_px)[0])
 
     def shares_of(self, counts: np.ndarray) -> "Shares":
         """The ``Shares`` of a pose from its five sums (``counts``)."""
@@ -336,27 +350,47 @@ class EdgeEvidence:
                       explained=float(explained / seen_edges) if seen_edges > 0 else 0.0,
                       significance=1.0 - float(np.exp(-surprise / self.SIGNIFICANT_PIXELS)))
 
-    def counted_pixels(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float) -> np.ndarray:
+    def counted_pixels(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float,
+                       soft: np.ndarray | None = None, soft_tolerance_px: float | None = None) -> np.ndarray:
         """(H, W) uint8: the edge pixels the explained share of ``shares`` counts at this pose,
         2 where a model edge explains them, 1 where none does, 0 elsewhere (for pictures of
         what lowers a pose's score, bench/explained_overlay.py)."""
         labels = np.zeros(self.shape, np.uint8)
-        self.counts(model_px, np.array([0, len(model_px)]), tolerance_px, min_margin_px, labels=labels)
+        self.counts(model_px, np.array([0, len(model_px)]), tolerance_px, min_margin_px, soft=soft,
+                    soft_tolerance_px=soft_tolerance_px, labels=labels)
         return labels
 
     def counts(self, model_px: np.ndarray, spans: np.ndarray, tolerance_px: float, min_margin_px: float,
-               min_size_px: float = 0.0, labels: np.ndarray | None = None) -> np.ndarray:
+               min_size_px: float = 0.0, soft: np.ndarray | None = None, soft_tolerance_px: float | None = None,
+               labels: np.ndarray | None = None) -> np.ndarray:
         """(B, 5) ``kernels.pose_evidence_kernel``'s sums for B poses, pose b's segments
-        ``model_px[spans[b]:spans[b + 1]]`` (pixels); zeros for a pose without segments or
-        spanning less than ``min_size_px``; the counted pixels marked in ``labels`` if given
-        (``counted_pixels``)."""
+        ``model_px[spans[b]:spans[b + 1]]`` (pixels), those marked ``soft`` looked up within
+        ``soft_tolerance_px``; zeros for a pose without segments or spanning less than
+        ``min_size_px``; the counted pixels marked in ``labels`` if given (``counted_pixels``)."""
+        model_px = np.ascontiguousarray(model_px, np.float64).reshape(-1, 2, 2)
+        if soft is None or soft_tolerance_px is None or soft_tolerance_px == tolerance_px or not np.any(soft):
+            tolerances, reach_of = (float(tolerance_px),), np.zeros(len(model_px), np.int64)
+        else:
+            tolerances, reach_of = (float(tolerance_px), float(soft_tolerance_px)), np.asarray(soft, np.int64)
+        near, chance = self.stacked(tolerances)
         out = np.zeros((len(spans) - 1, 5))
-        pose_evidence_kernel(np.ascontiguousarray(model_px, np.float64).reshape(-1, 2, 2), np.asarray(spans, np.int64),
-                             float(min_size_px), self.near_like(tolerance_px).view(np.uint8),
-                             self.chance(tolerance_px), self.edges.view(np.uint8), float(tolerance_px),
-                             float(min_margin_px), self.OUTLINE_MARGIN, self.SEEN_CELL, self.SEEN_REACH, out,
+        pose_evidence_kernel(model_px, reach_of, np.asarray(spans, np.int64), float(min_size_px), near, chance,
+                             self.edges.view(np.uint8), np.array(tolerances), float(min_margin_px),
+                             self.OUTLINE_MARGIN, self.SEEN_CELL, self.SEEN_REACH, out,
                              np.zeros((0, 0), np.uint8) if labels is None else labels)
         return out
+
+    def stacked(self, tolerances: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """``near_like`` (as uint8) and ``chance`` of each tolerance stacked, (T, BINS, H + 2,
+        W + 2) each: what the kernel looks up. Cached per tuple of tolerances."""
+        if tolerances not in self._stacked:
+            if len(tolerances) == 1:  # views, no copy
+                self._stacked[tolerances] = (self.near_like(tolerances[0]).view(np.uint8)[None],
+                                             self.chance(tolerances[0])[None])
+            else:
+                self._stacked[tolerances] = (np.stack([self.near_like(t).view(np.uint8) for t in tolerances]),
+                                             np.stack([self.chance(t) for t in tolerances]))
+        return self._stacked[tolerances]
 
     def chance(self, tolerance_px: float) -> np.ndarray:
         """(BINS, H + 2, W + 2) float32: per direction bin, the chance that a model point of
