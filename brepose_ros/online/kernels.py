@@ -282,10 +282,10 @@ def warm_up() -> None:
     align_on_edges_kernel(R, t, np.array([[2.0]]), np.array([[0.0, 0.0, -1.0]]), np.zeros(3), np.array([0, 4]), square,
                           np.ones(4), np.array([100.0, 100.0, 2.0, 2.0]), np.zeros(8), np.zeros((8, 4, 4), np.int32),
                           np.zeros((1, 2)), 3.0, 12, 3, np.zeros((1, 6, 6)), np.zeros(1))
-    near, edges = np.zeros((1, 8, 6, 6), np.uint8), np.zeros((4, 4), np.uint8)
+    near, row_starts, columns = np.zeros((1, 8, 6, 6), np.uint8), np.zeros(5, np.int64), np.zeros(0, np.int64)
     pose_evidence_kernel(segments * 3.0, np.zeros(2, np.int64), np.array([0, 2]), 1.0, near,
-                         np.zeros((1, 8, 6, 6), np.float32), edges, np.ones(1), 1.0, 0.2, 2, 1, np.zeros((1, 5)),
-                         np.zeros((0, 0), np.uint8))
+                         np.zeros((1, 8, 6, 6), np.float32), row_starts, columns, np.ones(1), 1.0, 0.2, 2, 1,
+                         np.zeros((1, 5)), np.zeros((0, 0), np.uint8))
 
 
 @njit(nogil=True, cache=True)
@@ -340,9 +340,9 @@ def _nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, i_ux: np.ndarray,
 
 @njit(nogil=True, cache=True)
 def pose_evidence_kernel(model_px: np.ndarray, reach_of: np.ndarray, spans: np.ndarray, min_size: float,
-                         near: np.ndarray, chance: np.ndarray, edges: np.ndarray, tolerances: np.ndarray,
-                         min_margin: float, margin_share: float, cell: int, reach: int, out: np.ndarray,
-                         labels: np.ndarray) -> None:
+                         near: np.ndarray, chance: np.ndarray, row_starts: np.ndarray, columns: np.ndarray,
+                         tolerances: np.ndarray, min_margin: float, margin_share: float, cell: int, reach: int,
+                         out: np.ndarray, labels: np.ndarray) -> None:
     """What ``scoring.EdgeEvidence.shares`` counts for B poses, into ``out`` (B, 5): pose b's
     projected visible model segments are ``model_px[spans[b]:spans[b + 1]]`` (pixels),
     segment s looked up within ``tolerances[reach_of[s]]`` (``_pose_evidence``).
@@ -354,7 +354,7 @@ def pose_evidence_kernel(model_px: np.ndarray, reach_of: np.ndarray, spans: np.n
     poses, GIL released: per pose in numpy, the projection, outline and clipping cost more
     than the counting and held the GIL. ``labels`` as ``_pose_evidence``'s.
     """
-    height, width = edges.shape
+    height, width = near.shape[2] - 2, near.shape[3] - 2
     far = float(max(height, width))
     for b in range(len(spans) - 1):
         out[b, :] = 0.0
@@ -369,7 +369,7 @@ def pose_evidence_kernel(model_px: np.ndarray, reach_of: np.ndarray, spans: np.n
         if math.hypot(x_hi - x_lo, y_hi - y_lo) < min_size:
             continue
         clipped = np.minimum(np.maximum(model_px[lo:hi], -4.0 * far), 5.0 * far)
-        _pose_evidence(clipped, reach_of[lo:hi], near, chance, edges,
+        _pose_evidence(clipped, reach_of[lo:hi], near, chance, row_starts, columns,
                        grown_outline(clipped.reshape(-1, 2), min_margin, margin_share), tolerances, cell, reach, out[b],
                        labels)
 
@@ -419,8 +419,8 @@ def grown_outline(points: np.ndarray, min_margin: float, margin_share: float) ->
 
 @njit(nogil=True, cache=True)
 def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray, chance: np.ndarray,
-                   edges: np.ndarray, outline: np.ndarray, tolerances: np.ndarray, cell: int, reach: int,
-                   out: np.ndarray, labels: np.ndarray) -> None:
+                   row_starts: np.ndarray, columns: np.ndarray, outline: np.ndarray, tolerances: np.ndarray, cell: int,
+                   reach: int, out: np.ndarray, labels: np.ndarray) -> None:
     """What ``scoring.EdgeEvidence.shares`` counts for one pose, into ``out`` (5,).
 
     model_px (S, 2, 2) the projected visible model segments, pixels; segment s is looked up
@@ -428,7 +428,8 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
     near (T, BINS, H + 2, W + 2) 0/1 per tolerance and direction bin, within that tolerance
     of a like edge pixel, a False border around the image;
     chance (T, BINS, H + 2, W + 2) per tolerance and direction bin the local share of such
-    pixels, bordered alike; edges (H, W) 0/1 the edge pixels; outline (P, 2) the grown convex
+    pixels, bordered alike; the edge pixels of row y at the columns
+    ``columns[row_starts[y]:row_starts[y + 1]]`` (ascending); outline (P, 2) the grown convex
     outline's corners.
 
     out[0] the model length sampled (a point every 2 pixels, at most 2,000 per segment),
@@ -444,7 +445,7 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
     when also counted in out[4] (pictures of what the explained share counts).
     """
     out[:] = 0.0
-    bins, height, width = near.shape[1], edges.shape[0], edges.shape[1]
+    bins, height, width = near.shape[1], near.shape[2] - 2, near.shape[3] - 2
     tolerance = tolerances[0]
     rows, cols = (height + cell - 1) // cell, (width + cell - 1) // cell
     cell_model = np.zeros((rows, cols))
@@ -494,21 +495,21 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
                         confirmed += cell_confirmed[rr, cc]
                         expected += cell_chance[rr, cc]
             seen[r, c] = model > 0.0 and confirmed - expected >= 0.5 * model
-    # the model drawn into the box, each pixel within tolerance of a point every pixel along it
-    drawn = np.zeros((y1 - y0, x1 - x0), np.bool_)
+    # a point every pixel along the model, marked on a grid of the box grown by the tolerance;
+    # an edge pixel is near the model if a point lies within the tolerance of it: looked up
+    # for the counted edge pixels only, fewer than the points times the disc around each
     radius = int(math.floor(tolerance))
+    marked = np.zeros((y1 - y0 + 2 * radius, x1 - x0 + 2 * radius), np.bool_)
     for s in range(model_px.shape[0]):
         ax, ay = model_px[s, 0, 0], model_px[s, 0, 1]
         dx, dy = model_px[s, 1, 0] - ax, model_px[s, 1, 1] - ay
         count = min(max(int(math.ceil(math.sqrt(dx * dx + dy * dy))), 1), 4000)
         for j in range(count + 1):
             cx, cy = int(np.rint(ax + j / count * dx)), int(np.rint(ay + j / count * dy))
-            if cx < x0 - radius or cx >= x1 + radius or cy < y0 - radius or cy >= y1 + radius:
-                continue
-            for oy in range(-radius, radius + 1):
-                for ox in range(-radius, radius + 1):
-                    if ox * ox + oy * oy <= tolerance * tolerance and x0 <= cx + ox < x1 and y0 <= cy + oy < y1:
-                        drawn[cy + oy - y0, cx + ox - x0] = True
+            if x0 - radius <= cx < x1 + radius and y0 - radius <= cy < y1 + radius:
+                marked[cy - y0 + radius, cx - x0 + radius] = True
+    disc = [(ox, oy) for oy in range(-radius, radius + 1) for ox in range(-radius, radius + 1)
+            if ox * ox + oy * oy <= tolerance * tolerance]
     # edge pixels inside the convex outline, row by row
     corners = outline.shape[0]
     for y in range(y0, y1):
@@ -521,13 +522,23 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
                 left, right = min(left, x), max(right, x)
         if right < left:
             continue
-        for x in range(max(int(math.ceil(left)), x0), min(int(math.floor(right)) + 1, x1)):
-            if edges[y, x] != 0 and seen[y // cell, x // cell]:
+        # the row's edge pixels only: a few in a hundred pixels of the box
+        lo, hi = max(int(math.ceil(left)), x0), min(int(math.floor(right)) + 1, x1)
+        for k in range(row_starts[y], row_starts[y + 1]):
+            x = columns[k]
+            if x >= hi:
+                break
+            if x >= lo and seen[y // cell, x // cell]:
+                near_model = False
+                for ox, oy in disc:
+                    if marked[y - oy - y0 + radius, x - ox - x0 + radius]:
+                        near_model = True
+                        break
                 out[3] += 1.0
-                if drawn[y - y0, x - x0]:
+                if near_model:
                     out[4] += 1.0
                 if labels.shape[0] > 0:
-                    labels[y, x] = 2 if drawn[y - y0, x - x0] else 1
+                    labels[y, x] = 2 if near_model else 1
 
 
 @njit(nogil=True, cache=True)
@@ -543,7 +554,6 @@ def _nearest_view(R: np.ndarray, t: np.ndarray, view_directions: np.ndarray, mod
         if product > most:
             view, most = v, product
     return view
-
 
 @njit(nogil=True, cache=True)
 def project_point(x: float, y: float, z: float, intrinsics: np.ndarray, distortion: np.ndarray) -> tuple[float, float]:

@@ -241,6 +241,9 @@ class EdgeEvidence:
         #: the edge pixels (x, y) and the direction each edge runs in, modulo pi (across the
         #: gradient): the pre-filter's picture of an image region
         self.pixels = np.stack([cols, rows], axis=1)
+        #: the columns of row y's edge pixels are ``columns[row_starts[y]:row_starts[y + 1]]``,
+        #: ascending: the scores count edge pixels row by row
+        self.row_starts, self.columns = np.searchsorted(rows, np.arange(self.shape[0] + 1)), cols
         self.directions = np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi)
         bins = (self.directions / np.pi * self.BINS).astype(int) % self.BINS
         #: per direction bin b, the edge pixels of bins b - 1, b and b + 1
@@ -375,7 +378,7 @@ class EdgeEvidence:
         near, chance = self.stacked(tolerances)
         out = np.zeros((len(spans) - 1, 5))
         pose_evidence_kernel(model_px, reach_of, np.asarray(spans, np.int64), float(min_size_px), near, chance,
-                             self.edges.view(np.uint8), np.array(tolerances), float(min_margin_px),
+                             self.row_starts, self.columns, np.array(tolerances), float(min_margin_px),
                              self.OUTLINE_MARGIN, self.SEEN_CELL, self.SEEN_REACH, out,
                              np.zeros((0, 0), np.uint8) if labels is None else labels)
         return out
