@@ -122,9 +122,9 @@ class MatchParams(Ranged):
         "best-covered (view, rotation) hypotheses per region turned into poses and verified", 6, 1, 64)
     workers: int = doc(
         "worker threads sharing one image's work (the pre-filter's views, the matching jobs, the poses refined "
-        "and scored); 0 = one per CPU core. Default 1: on 2 cores 2 threads measured 1.06x clean and 1.26x "
-        "occluded with a mostly free second core, 0.87-1.11x with one core busy with other work "
-        "(bench/latency.py, docs/results/latency.md)", 1, 0, 16)
+        "and scored); 0 = one per CPU core. On 2 free cores 2 threads measured 1.18x clean and 1.46x occluded "
+        "with the same poses; with a core busy with other work 0.9-1.0x: set 1 where the node shares its "
+        "cores (bench/latency.py, docs/results/latency.md)", 0, 0, 16)
 
 
 @dataclass(frozen=True)

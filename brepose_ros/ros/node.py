@@ -32,7 +32,7 @@ one worker thread decodes it and hands it to every part at once, each part's est
 its own thread, so several parts cost about the time of the slowest one on enough cores
 and a slow image never builds a backlog. Each part publishes its pose as soon as it has it;
 the diagnostics array follows when every part has answered. Each estimator spreads one
-image's work over its own ``matching.workers`` threads (default 1; 0 = one per core). The executor
+image's work over its own ``matching.workers`` threads (default 0 = one per core). The executor
 threads (``executor_threads``) keep the input callbacks, timers and parameter services
 responsive meanwhile; ``messages.make_executor`` builds the executor with a work-around for
 a busy loop of rclpy 9.1's MultiThreadedExecutor.
