@@ -108,9 +108,18 @@ def graph_and_model(step: Path, cache: Path, step_deg: float = 5.0) -> tuple[Asp
     return graph, ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
 
 
-def scene(step: Path, folder: Path, images: int | range, seed: int, config: SceneConfig, distractors):
-    """Images ``images`` (a range, or a count from the first) of a cached scene, grown anew
-    if it holds fewer."""
+def scene_path(cache: Path, name: str, condition: str, look: str = "varied", span: tuple[float, float] = SPAN,
+               seed: int = 100) -> Path:
+    """Where the scene of a bench part in one condition (and look, span, seed) is cached."""
+    return cache / scenes_folder(look, span) / f"{name}_{condition}_{seed}"
+
+
+def scene(cache: Path, name: str, step: Path, condition: str, images: int | range, distractors,
+          look: str = "varied", span: tuple[float, float] = SPAN, seed: int = 100):
+    """Images ``images`` (a range, or a count from the first) of a bench part's cached scene in
+    one condition (``scene_path``), grown anew if it holds fewer."""
+    folder = scene_path(cache, name, condition, look, span, seed)
+    config = SceneConfig(span=span, look=look, **CONDITIONS[condition])
     if isinstance(images, int):
         images = range(images)
     if (folder / "gt.json").exists():
@@ -277,10 +286,9 @@ def main(argv=None) -> int:
         estimator = Estimator(graph, params)
         for condition in args.conditions:
             progress.set_postfix_str(f"{name}: {condition}")
-            config = SceneConfig(span=tuple(args.span), look=args.look, **CONDITIONS[condition])
-            folder = cache / scenes_folder(args.look, tuple(args.span)) / f"{name}_{condition}_{args.seed}"
             images = range(args.start, args.start + args.n)
-            results = evaluate_scene(scene(step, folder, images, args.seed, config, distractors),
+            results = evaluate_scene(scene(cache, name, step, condition, images, distractors, args.look,
+                                           tuple(args.span), args.seed),
                                      estimator, model, on_image=lambda *_: progress.update(),
                                      paper_only=args.paper_only)
             rows.append({"part": name, "set": part_set(name), "condition": condition,

@@ -30,8 +30,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import (CONDITIONS, LOOKS, PARTS, SPAN, TUNING,  # noqa: E402
-                            distractor_meshes, scene, scenes_folder, step_file)
+from bench.accuracy import (LOOKS, PARTS, SPAN, TUNING,  # noqa: E402
+                            distractor_meshes, scene, step_file)
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.figures import pyplot, save_figure  # noqa: E402
@@ -42,7 +42,6 @@ from brepose_ros import __version__  # noqa: E402
 from brepose_ros.online.confidence import FEATURES, SHIPPED, Calibration, features  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
-from brepose_ros.synthetic.scenes import SceneConfig  # noqa: E402
 
 POSITIVE_CONDITIONS = ("clean", "occl20+clutter")
 #: a part's look-alike: the seed paper's Fig. 7 pair, the same L body with and without
@@ -70,9 +69,7 @@ class Collector:
         self.distractors = distractor_meshes(cache)
 
     def scene(self, name: str, step: Path, condition: str):
-        config = SceneConfig(span=SPAN, look=self.look, **CONDITIONS[condition])
-        folder = self.cache / scenes_folder(self.look, SPAN) / f"{name}_{condition}_{self.seed}"
-        return scene(step, folder, self.n, self.seed, config, self.distractors)
+        return scene(self.cache, name, step, condition, self.n, self.distractors, self.look, SPAN, self.seed)
 
     def collect(self, names: list[str]) -> list[dict]:
         """One ``record`` per image and estimator of ``names`` (owner: the estimator's part,

@@ -26,12 +26,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import (CONDITIONS, PARTS, SPAN, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
-                            scene, scenes_folder)
+from bench.accuracy import (CONDITIONS, PARTS, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
+                            scene)
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
-from brepose_ros.synthetic.scenes import SceneConfig  # noqa: E402
 
 #: a wrong pose is at another depth when its centre's distance is this share off the truth's
 DEPTH_SAME = 0.1
@@ -66,9 +65,7 @@ def main(argv=None) -> int:
         settings = {on: dataclasses.replace(base, pose=dataclasses.replace(base.pose, larger_check=on))
                     for on in (False, True)}
         for condition in args.conditions:
-            folder = cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_100"
-            config = SceneConfig(span=SPAN, look="varied", **CONDITIONS[condition])
-            images = scene(step, folder, args.n, 100, config, distractors)
+            images = scene(cache, name, step, condition, args.n, distractors)
             row = {"part": name, "condition": condition, "images": len(images.entries), "right_off": 0, "right_on": 0,
                    "wrong_off": 0, "other_depth": 0, "made": 0, "broken": 0, "ms_off": [], "ms_on": [],
                    "check_ms": []}

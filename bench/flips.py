@@ -37,8 +37,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import (CONDITIONS, PARTS, SPAN, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
-                            scene, scenes_folder)
+from bench.accuracy import (CONDITIONS, PARTS, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
+                            scene)
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import pose_errors  # noqa: E402
 from brepose_ros.geometry import rotation_about, rotation_angle_deg  # noqa: E402
@@ -47,7 +47,6 @@ from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.refinement import CLIMB_ROUNDS, Candidate, hypothesis_rounds  # noqa: E402
 from brepose_ros.online.symmetry import pick_by_evidence  # noqa: E402
 from brepose_ros.online.workers import SERIAL  # noqa: E402
-from brepose_ros.synthetic.scenes import SceneConfig  # noqa: E402
 
 #: a wrong pose is a half turn beyond this angle, degrees, with its centre's depth within DEPTH_SAME
 HALF_TURN_DEG = 150.0
@@ -136,11 +135,9 @@ def main(argv=None) -> int:
         p = estimator.params
         axes = principal_axes(graph)
         for condition in args.conditions:
-            folder = cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_100"
-            config = SceneConfig(span=SPAN, look="varied", **CONDITIONS[condition])
             row = {"part": name, "condition": condition, "reported": 0, "right": 0, "wrong": 0, "half_turn": 0,
                    "other_depth": 0, "reachable": 0, "made": 0, "broken": 0, "ms": []}
-            images = scene(step, folder, args.n, 100, config, distractors)
+            images = scene(cache, name, step, condition, args.n, distractors)
             for i, entry in enumerate(images.entries):
                 image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
                 est = estimator.estimate(image, images.camera)

@@ -30,7 +30,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.accuracy import (CONDITIONS, PARTS, SPAN, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
-                            part_set, scene, scenes_folder)
+                            part_set, scene, scene_path)
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors, symmetric_truth  # noqa: E402
 from brepose_ros.geometry import rotation_angle_deg  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
@@ -39,7 +39,6 @@ from brepose_ros.online.image_edges import detect_edges  # noqa: E402
 from brepose_ros.online.symmetry import check_twins  # noqa: E402
 from brepose_ros.params import GENERATORS, EstimatorParams  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
-from brepose_ros.synthetic.scenes import SceneConfig  # noqa: E402
 
 #: a candidate this near the truth is one the climb and polish can finish (brief of issue 11)
 NEAR_DEG, NEAR_CENTRE = 15.0, 0.10
@@ -104,13 +103,12 @@ def main(argv=None) -> int:
         graph, model = graph_and_model(step, cache)
         estimators = [(label, Estimator(graph, params)) for label, params in variants]
         for condition in args.conditions:
-            folder = cache / scenes_folder("varied", tuple(args.span)) / f"{name}_{condition}_100"
+            folder = scene_path(cache, name, condition, span=tuple(args.span))
             images = range(args.start, args.start + args.n)
             cached_count = len(load_scene(folder).entries) if (folder / "gt.json").exists() else 0
             if cached_count < images.stop and distractors is None:  # the scene must be grown
                 distractors = distractor_meshes(cache)
-            config = SceneConfig(span=tuple(args.span), look="varied", **CONDITIONS[condition])
-            cached = scene(step, folder, images, 100, config, distractors)
+            cached = scene(cache, name, step, condition, images, distractors, span=tuple(args.span))
             results = {label: [] for label, _ in estimators}
             for entry in cached.entries:
                 image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)

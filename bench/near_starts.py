@@ -27,7 +27,7 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, SPAN, bench_steps, graph_and_model, scenes_folder  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, bench_steps, graph_and_model, scene_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import pose_errors  # noqa: E402
 from brepose_ros.geometry import rotation_about  # noqa: E402
@@ -70,7 +70,7 @@ def main(argv=None) -> int:
         graph, model = graph_and_model(step, cache)
         refiner = PoseRefiner(graph)
         for condition in args.conditions:
-            scene = load_scene(cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_100")
+            scene = load_scene(scene_path(cache, name, condition))
             for i, entry in enumerate(scene.entries[args.start:args.start + args.n], start=args.start):
                 image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
                 frame = Frame.of(detect_edges(image, params.edges), scene.camera)

@@ -35,7 +35,7 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, SPAN, bench_steps, graph_and_model, part_set, scenes_folder  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, bench_steps, graph_and_model, part_set, scene_path  # noqa: E402
 from bench.hypothesis_recall import near_truth  # noqa: E402
 from bench.search_oracle import hypothesis_near, near_templates  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
@@ -128,7 +128,7 @@ def main(argv=None) -> int:
         graph, model = graph_and_model(step, cache)
         estimator = Estimator(graph, params)
         for condition in args.conditions:
-            scene = load_scene(cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_100")
+            scene = load_scene(scene_path(cache, name, condition))
             for entry in scene.entries[args.start:args.start + args.n]:
                 image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
                 frame = Frame.of(detect_edges(image, params.edges), scene.camera)

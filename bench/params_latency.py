@@ -21,12 +21,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import CONDITIONS, PARTS, SPAN, distractor_meshes, scene, scenes_folder, step_file  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, distractor_meshes, scene, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
-from brepose_ros.synthetic.scenes import SceneConfig  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -47,9 +46,7 @@ def main(argv=None) -> int:
         step = step_file(PARTS[name], cache)
         estimator = Estimator(AspectGraph.load(cached_graph_path(step, cache, args.step_deg)))
         for condition in args.conditions:
-            config = SceneConfig(span=SPAN, look="varied", **CONDITIONS[condition])
-            folder = cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_{args.seed}"
-            loaded = scene(step, folder, args.n, args.seed, config, distractors)
+            loaded = scene(cache, name, step, condition, args.n, distractors, seed=args.seed)
             images = [cv2.imread(str(e.path), cv2.IMREAD_UNCHANGED) for e in loaded.entries[:args.n]]
             for round_ in range(args.rounds):
                 for image in images:

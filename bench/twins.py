@@ -31,13 +31,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.accuracy import (CONDITIONS, PARTS, SPAN, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
-                            scene, scenes_folder)
+                            scene)
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene, translation_error_mm  # noqa: E402
 from brepose_ros.geometry import quaternion_from_matrix, rotation_about, rotation_angle_deg  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
-from brepose_ros.synthetic.scenes import LOOKS, SceneConfig  # noqa: E402
+from brepose_ros.synthetic.scenes import LOOKS  # noqa: E402
 
 SYMMETRIC_PARTS = ("notched_plate", "flange", "shaft", "mounting_plate", "motor1_holder")
 
@@ -97,9 +97,7 @@ def main(argv=None) -> int:
         graph, model = graph_and_model(step, cache, args.step_deg)
         estimators = {check: Estimator(graph, params) for check, params in settings.items()}
         for condition in args.conditions:
-            config = SceneConfig(span=tuple(args.span), look=args.look, **CONDITIONS[condition])
-            folder = cache / scenes_folder(args.look, tuple(args.span)) / f"{name}_{condition}_{args.seed}"
-            loaded = scene(step, folder, args.n, args.seed, config, distractors)
+            loaded = scene(cache, name, step, condition, args.n, distractors, args.look, tuple(args.span), args.seed)
             for check, estimator in estimators.items():
                 rows.append(count_twins(loaded, estimator, model, name, condition, check, records))
             out.write_text(json.dumps(records, indent=1) + "\n")

@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, SPAN, part_set, scenes_folder, step_file  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, part_set, scene_path, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
@@ -80,7 +80,7 @@ def main(argv=None) -> int:
                 graph = graph_class.load(cached_graph_path(step, cache, 5.0))
                 estimators[label] = (graph, estimator_class(graph), load_scene)
             for condition in args.conditions:
-                folder = cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_100"
+                folder = scene_path(cache, name, condition)
                 # each version reads the scene with its own scene_folder, once per condition
                 scenes = {label: load_scene(folder) for label, (_, _, load_scene) in estimators.items()}
                 for i in range(args.n):

@@ -32,7 +32,7 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, SPAN, scenes_folder, step_file  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, scene_path, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.geometry import look_at_rotation  # noqa: E402
@@ -104,7 +104,7 @@ def main(argv=None) -> int:
         graph = AspectGraph.load(cached_graph_path(step, cache, 5.0))
         remover = hidden_lines.HiddenLineRemover(load_step(step), method="exact")
         for condition in args.conditions:
-            scene = load_scene(cache / scenes_folder("varied", SPAN) / f"{name}_{condition}_100")
+            scene = load_scene(scene_path(cache, name, condition))
             for i in range(args.n):
                 entry = scene.entries[i]
                 frame = Frame.of(detect_edges(cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED), params.edges),
