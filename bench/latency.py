@@ -14,8 +14,9 @@ alike and the ratios stay fair while the absolute times are upper bounds:
   (mean; on a machine busy with other jobs it is what one worker would take alone, since
   waiting for a core costs wall time but no CPU time);
 - parts: P estimators (P copies of the graph, each with ``--part-workers`` threads) on the
-  same image at once, one thread per part as the node runs them; wall time per image and
-  its ratio to one part;
+  same image at once, one thread per part as the node runs them, the image's edges found
+  once for all parts as the node does ("once") or by each part ("per part", as before the
+  node shared them); wall time per image and its ratio to one part;
 - start: in a fresh process, as a node starts: loading the graph and building the
   estimator ("setup s"), the first image's time, and its ratio to the steady state (the
   median of the later images).
@@ -52,7 +53,7 @@ from brepose_ros.scene_folder import load_scene  # noqa: E402
 from brepose_ros.synthetic.scenes import SceneConfig, generate_scene  # noqa: E402
 from brepose_ros.viewsphere import fibonacci_step  # noqa: E402
 
-STAGES = ("edges", "prefilter", "matching", "refinement", "total")
+STAGES = ("edges", "prefilter", "matching", "refinement", "search", "total")
 SCENES = {"clean": "clean", "occluded": "occl30+clutter"}
 
 
@@ -111,26 +112,32 @@ def workers_table(graph: AspectGraph, scene, images, workers: list[int], rounds:
 
 def parts_table(graph: AspectGraph, scene, images, parts: list[int], part_workers: int, rounds: int) -> list[str]:
     estimators = [Estimator(graph, with_workers(part_workers)) for _ in range(max(parts))]
+    # (parts, edges shared): more than one part finds the image's edges once for all, as the
+    # node does (Estimator.detect), or each its own, the node before it shared them
+    settings = [(p, shared) for p in parts for shared in ((True, False) if p > 1 else (True,))]
     threads = {p: WorkerPool(p) for p in parts}
     for e in estimators:
         e.estimate(images[0], scene.camera)
 
-    def run(p, image):
+    def run(setting, image):
+        p, shared = setting
         start = time.perf_counter()
-        threads[p].map(lambda e: e.estimate(image, scene.camera), estimators[:p])
+        frame = estimators[0].detect(image, scene.camera, estimators[1:p]) if shared and p > 1 else None
+        threads[p].map(lambda e: e.estimate(image, scene.camera, frame=frame), estimators[:p])
         return time.perf_counter() - start, None
 
-    results = alternate(parts, images, rounds, run)
+    results = alternate(settings, images, rounds, run)
     for e in estimators:
         e.close()
     for pool in threads.values():
         pool.close()
-    base = float(np.sum([s for s, _ in results[parts[0]]]))
+    base = float(np.sum([s for s, _ in results[settings[0]]]))
     rows = []
-    for p in parts:
-        seconds = [s for s, _ in results[p]]
+    for p, shared in settings:
+        seconds = [s for s, _ in results[(p, shared)]]
         ms, rate = summary(seconds)
-        rows.append(f"| {p} | {part_workers} | {ms:.0f} | {rate * p:.1f} | {sum(seconds) / base:.2f} |")
+        rows.append(f"| {p} | {'once' if shared else 'per part'} | {part_workers} | {ms:.0f} | {rate * p:.1f} | "
+                    f"{sum(seconds) / base:.2f} |")
     return rows
 
 
@@ -191,7 +198,7 @@ def main(argv=None) -> int:
         print(load_average())
         print("\n| views | scene | workers | " + " | ".join(f"{s} ms" for s in STAGES[:-1])
               + " | ms/image | images/s | speed-up | same poses | CPU ms/image |")
-        print("|" + "---|" * 12)
+        print("|" + "---|" * 13)
         for views, path in paths.items():
             graph = AspectGraph.load(path)
             for name, (scene, images) in scenes.items():
@@ -199,8 +206,8 @@ def main(argv=None) -> int:
                     print(f"| {graph.n_views} | {name} {row}", flush=True)
     if "parts" in args.tables:
         print(load_average())
-        print("\n| views | scene | parts | workers each | ms/image | part-images/s | time / 1 part |")
-        print("|" + "---|" * 7)
+        print("\n| views | scene | parts | edges | workers each | ms/image | part-images/s | time / 1 part |")
+        print("|" + "---|" * 8)
         for views, path in paths.items():
             graph = AspectGraph.load(path)
             for name, (scene, images) in scenes.items():

@@ -54,9 +54,16 @@ class FakeEstimator:
     def __init__(self, graph, params, delay: float = 0.0, fail: bool = False):
         self.graph, self.params, self.delay, self.fail = graph, params, delay, fail
         self.calls: list[tuple[tuple, Camera, object]] = []
+        self.frames: list = []  # the frame each call was handed (None: found its own edges)
+        self.detected: list = []  # the estimators each ``detect`` was for besides this one
 
-    def estimate(self, image: np.ndarray, camera: Camera) -> Estimate:
+    def detect(self, image: np.ndarray, camera: Camera, others=()):
+        self.detected.append(list(others))
+        return ("frame", image.shape)
+
+    def estimate(self, image: np.ndarray, camera: Camera, frame=None) -> Estimate:
         self.calls.append((image.shape, camera, self.params))
+        self.frames.append(frame)
         time.sleep(self.delay)
         if self.fail:
             raise RuntimeError("boom")
@@ -89,10 +96,10 @@ class WatchedEstimator(FakeEstimator):
         self.handovers += 1
         self._params = value
 
-    def estimate(self, image, camera):
+    def estimate(self, image, camera, frame=None):
         self.busy = True
         try:
-            return super().estimate(image, camera)
+            return super().estimate(image, camera, frame)
         finally:
             self.busy = False
 
@@ -326,10 +333,10 @@ class OverlapEstimator(FakeEstimator):
         super().__init__(graph, params, delay=0.3)
         self.spans: list[tuple[float, float]] = []
 
-    def estimate(self, image, camera):
+    def estimate(self, image, camera, frame=None):
         start = time.perf_counter()
         try:
-            return super().estimate(image, camera)
+            return super().estimate(image, camera, frame)
         finally:
             self.spans.append((start, time.perf_counter()))
 
@@ -346,6 +353,16 @@ def test_two_parts_are_estimated_at_once_and_both_poses_published(ros):
     assert {stamp_ns(msgs[0].header.stamp) for msgs in got.values()} == {stamp}
     (start_a, end_a), (start_b, end_b) = (part.estimator.spans[0] for part in node.parts)
     assert max(start_a, start_b) < min(end_a, end_b), "the two parts ran one after the other"
+    # the image's edges were found once, by the first part for both, and both got them
+    left, right = (part.estimator for part in node.parts)
+    assert left.detected == [[right]] and right.detected == []
+    assert left.frames == right.frames == [("frame", (120, 160, 3))]
+
+
+def test_one_part_finds_its_own_edges(ros):
+    node = start(ros)
+    ros.answer(ros.publish(part_image(), CAMERA))
+    assert node.parts[0].estimator.detected == [] and node.parts[0].estimator.frames == [None]
 
 
 def test_only_the_newest_frame_is_processed(ros):

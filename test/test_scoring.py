@@ -6,6 +6,7 @@ import pytest
 
 from brepose_ros.online import kernels, scoring
 from brepose_ros.online.image_edges import EdgeParams, canny_from_gradients, gradients
+from brepose_ros.online.workers import WorkerPool
 from brepose_ros.params import PoseParams
 
 #: the score's margin floor by default (pose.min_margin_pixels)
@@ -130,6 +131,28 @@ def test_an_edge_pixel_pairs_with_a_model_point_only_if_it_runs_alike():
     horizontal, vertical = evidence.orientation_bin(np.array([[[0.0, 0.0], [1.0, 0.0]], [[0.0, 0.0], [0.0, 1.0]]]))
     assert kernels.nearest_like_edge(*evidence.nearest_like(), horizontal, 200.0, 121.0, 2.0) == (True, 200.0, 119.0)
     assert not kernels.nearest_like_edge(*evidence.nearest_like(), vertical, 200.0, 121.0, 2.0)[0]
+
+
+def test_maps_built_per_bin_on_threads_equal_those_built_on_first_use():
+    """EdgeEvidence.bin_jobs / adopt (Frame.detect's split of the maps over the worker
+    threads) give the nearest-edge table and the maps at each tolerance to the bit."""
+    rng = np.random.default_rng(4)
+    gray = np.full((240, 320), 80, np.uint8)
+    for _ in range(60):
+        (x0, y0), (x1, y1) = rng.uniform([0, 0], [320, 240], size=(2, 2))
+        cv2.line(gray, (int(x0), int(y0)), (int(x1), int(y1)), int(rng.integers(150, 256)), 2)
+    stage = edge_stage(gray.astype(np.float32))
+    prepared, lazy = scoring.EdgeEvidence(*stage), scoring.EdgeEvidence(*stage)
+    pool = WorkerPool(2)
+    try:
+        prepared.adopt(pool.map(lambda job: job(), prepared.bin_jobs((2.0, 3.0))), (2.0, 3.0))
+    finally:
+        pool.close()
+    for ours, theirs in zip(prepared.nearest_like(), lazy.nearest_like()):
+        assert np.array_equal(ours, theirs)
+    for tolerance in (2.0, 3.0):
+        assert np.array_equal(prepared.near_like(tolerance), lazy.near_like(tolerance))
+        assert np.array_equal(prepared.chance(tolerance), lazy.chance(tolerance))
 
 
 def edge_stage(gray):

@@ -103,6 +103,22 @@ def test_one_and_two_workers_give_the_same_poses_to_the_bit(cluttered):
         two.close()
 
 
+def test_edges_found_once_for_several_estimators_give_each_the_same_poses(cluttered):
+    """The node's parts share one image's edges (Estimator.detect, by the first part for all):
+    each part's poses are those it finds detecting its own edges, to the bit."""
+    graph, camera, images = cluttered
+    first, other = Estimator(graph, with_workers(EstimatorParams(), 2)), Estimator(graph)
+    try:
+        for image in images:
+            frame = first.detect(image, camera, [other])
+            alone = pose_of(other.estimate(image, camera))
+            assert pose_of(other.estimate(image, camera, frame=frame)) == alone
+            assert pose_of(first.estimate(image, camera, frame=frame)) == alone
+    finally:
+        first.close()
+        other.close()
+
+
 def test_parameter_changes_from_another_thread_never_break_an_image_in_flight(cluttered):
     """Workers (the thread pool) and the view features change while images are estimated:
     every image is answered with the poses of one whole parameter set, never an error."""

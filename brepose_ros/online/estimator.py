@@ -4,7 +4,8 @@ Each stage lives in its own module; this one only wires them:
 
 1. ``image_edges``: line segments (pixels) and Canny edge pixels; ``frame``: both
    undistorted into normalised camera coordinates, the edge pixels prepared for scoring
-   (beside the segments, on a second worker thread)
+   (beside the segments, on the worker threads); once per image for several parts
+   (``detect``)
 2. ``regions``: the whole image and clusters of touching segments, each seen by its
    virtual camera and normalised like the views
 3. hypothesis generators (``search.generators``, one or more, in order): ``tetrad``
@@ -42,6 +43,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
@@ -55,7 +57,7 @@ from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
 from .confidence import load_calibration
-from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_shares
+from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_shares, scored_tolerances
 from .search import TemplateSearch
 from .symmetry import check_twins
 from .workers import WorkerPool, resolve_workers
@@ -151,9 +153,23 @@ class Estimator:
         for pool in pools:
             pool.close()
 
-    def estimate(self, image: np.ndarray, camera: Camera, paper_only: bool = False) -> Estimate:
+    def detect(self, image: np.ndarray, camera: Camera, others: Sequence["Estimator"] = ()) -> Frame:
+        """The image's edges in every form the stages need (``Frame.detect``) on this estimator's
+        threads, for ``estimate(..., frame=)`` of this estimator and of the ``others`` (which
+        must have the same edge parameters: the node's parts): with several parts in one
+        process, the edges, the largest stage of a clean image, are found once, not per part.
+        The evidence's maps are built at every estimator's score tolerances."""
+        with self._lock:
+            p, pool = self._params, self._pool
+        tolerances = tuple(dict.fromkeys(t for e in (self, *others) for t in scored_tolerances(e.graph, e.params.pose)))
+        return Frame.detect(image, camera, p.edges, pool, tolerances)[1]
+
+    def estimate(self, image: np.ndarray, camera: Camera, paper_only: bool = False,
+                 frame: Frame | None = None) -> Estimate:
         """Find the part in ``image`` (grey or BGR ndarray) seen by ``camera``; with
-        ``paper_only`` by the seed paper's method alone (module doc).
+        ``paper_only`` by the seed paper's method alone (module doc). ``frame``: the image's
+        edges from ``detect`` (of this estimator or another with the same edge parameters),
+        else they are detected here (timed as the stage ``edges``).
 
         Raises ValueError for an unusable image (empty, wrong shape or dtype) or an image
         whose size disagrees with the camera's.
@@ -169,11 +185,12 @@ class Estimator:
         if image.ndim < 2 or image.shape[0] != camera.height or image.shape[1] != camera.width:
             raise ValueError(f"image of shape {image.shape} does not fit the camera's "
                              f"{camera.width}x{camera.height}")
-        edges, frame = Frame.detect(image, camera, p.edges, pool)
-        clock = _lap(timings, "edges", clock)
+        if frame is None:
+            frame = Frame.detect(image, camera, p.edges, pool, scored_tolerances(self.graph, p.pose))[1]
+            clock = _lap(timings, "edges", clock)
         not_found = Estimate(found=False, R=None, t=None, score=0.0, error_ratio=1.0, view_index=-1,
-                             n_image_segments=len(edges.segments), n_matched=0, n_nearest=0, timings=timings)
-        if len(edges.segments) < MIN_REGION_SEGMENTS:
+                             n_image_segments=len(frame.segments_px), n_matched=0, n_nearest=0, timings=timings)
+        if len(frame.segments_px) < MIN_REGION_SEGMENTS:
             return not_found
         groups = region_groups(frame, p.matching)
         if paper_only:
@@ -196,7 +213,7 @@ class Estimator:
         pairs = edge_pairs(self.graph, best.R, best.t, frame, p)
         shares, size, length = pose_shares(self.graph, best.R, best.t, frame, p.pose)
         estimate = Estimate(found=False, R=None, t=None, score=best.score, error_ratio=pairs.error_ratio,
-                            view_index=self.graph.nearest_view(best.R, best.t), n_image_segments=len(edges.segments),
+                            view_index=self.graph.nearest_view(best.R, best.t), n_image_segments=len(frame.segments_px),
                             n_matched=pairs.n_matched, n_nearest=pairs.n_nearest,
                             image_segments=pairs.image_segments, model_segments=pairs.model_segments,
                             timings=timings, matched_view=int(best.hypothesis.view), symmetry_margin=margin,

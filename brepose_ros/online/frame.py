@@ -30,18 +30,21 @@ class Frame:
         return cls._with(edges, camera, _evidence(edges))
 
     @classmethod
-    def detect(cls, image: np.ndarray, camera: Camera, params: EdgeParams,
-               pool: WorkerPool = SERIAL) -> tuple[ImageEdges, "Frame"]:
+    def detect(cls, image: np.ndarray, camera: Camera, params: EdgeParams, pool: WorkerPool = SERIAL,
+               tolerances: tuple[float, ...] = ()) -> tuple[ImageEdges, "Frame"]:
         """``detect_edges`` and ``of`` at once: after Canny, the line segments (Hough, merge,
         refit) and the evidence for scoring, which both start from the edge pixels alone,
-        run on two of the ``pool``'s threads. The evidence's nearest-edge table
-        (``EdgeEvidence.nearest_like``) is built there too, first as the longest job: every
-        image with a pose aligns on edge pixels (its polish at least), and the refinement's
-        threads would wait for it there."""
+        run on the ``pool``'s threads, the evidence's maps one job per direction bin
+        (``EdgeEvidence.bin_jobs``): its nearest-edge table (``EdgeEvidence.nearest_like``,
+        which every image with a pose aligns on, its polish at least) and its maps at the
+        score's ``tolerances``, pixels (``scoring.scored_tolerances``), all built once per
+        image before the refinement's threads would each wait for them."""
         pixels = edge_pixels(image, params)
-        evidence, segments, refine_segments = pool.map(lambda job: job(), [
-            lambda: _evidence(pixels, nearest=True), lambda: line_segments(pixels, params),
-            lambda: line_segments(pixels, refinement_params(params))])
+        evidence = _evidence(pixels)
+        segments, refine_segments, *per_bin = pool.map(lambda job: job(), [
+            lambda: line_segments(pixels, params), lambda: line_segments(pixels, refinement_params(params)),
+            *evidence.bin_jobs(tolerances)])
+        evidence.adopt(per_bin, tolerances)
         edges = dataclasses.replace(pixels, segments=segments, refine_segments=refine_segments)
         return edges, cls._with(edges, camera, evidence)
 
@@ -52,9 +55,5 @@ class Frame:
                    evidence=evidence, edge_points_n=camera.undistort(evidence.pixels))
 
 
-def _evidence(edges: ImageEdges, nearest: bool = False) -> EdgeEvidence:
-    """The edge evidence of ``edges``, with its nearest-edge table built if ``nearest``."""
-    evidence = EdgeEvidence(edges.edge_map, edges.gradient_x, edges.gradient_y)
-    if nearest:
-        evidence.nearest_like()
-    return evidence
+def _evidence(edges: ImageEdges) -> EdgeEvidence:
+    return EdgeEvidence(edges.edge_map, edges.gradient_x, edges.gradient_y)

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
-from functools import lru_cache
-from typing import TYPE_CHECKING, NamedTuple
+from functools import lru_cache, partial
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import cv2
 import numpy as np
@@ -63,6 +63,14 @@ def pose_scores(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame"
     counts = frame.evidence.counts(model_px, np.cumsum(spans), p.inlier_pixels, p.min_margin_pixels,
                                    p.min_size_pixels, graph.seg_kind[rows] != SHARP, p.outline_pixels)
     return np.array([frame.evidence.shares_of(c).score for c in counts])
+
+
+def scored_tolerances(graph: AspectGraph, p: PoseParams) -> tuple[float, ...]:
+    """The tolerances, pixels, at which ``pose_scores`` looks a graph's edges up: the maps
+    ``Frame.detect`` builds with the image's edges (``pose.outline_pixels`` only for a part
+    with curved faces)."""
+    soft = p.outline_pixels != p.inlier_pixels and bool(np.any(graph.seg_kind != SHARP))
+    return (p.inlier_pixels, p.outline_pixels) if soft else (p.inlier_pixels,)
 
 
 def visible_rows(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -256,6 +264,27 @@ class EdgeEvidence:
         self._nearest_like: tuple[np.ndarray, np.ndarray] | None = None  # nearest_like(), built on first use
         self._nearest_lock = threading.Lock()  # the refinement's threads share one image's evidence
 
+    def bin_jobs(self, tolerances: tuple[float, ...] = ()) -> list[Callable[[], tuple]]:
+        """One job per direction bin building its piece of ``nearest_like`` and of ``near_like``
+        and ``chance`` at each of ``tolerances``: OpenCV calls, which release the GIL, so that
+        the bins run on several threads (``Frame.detect``); ``adopt`` their results. The
+        same maps as built on first use, the longest job an eighth of them."""
+        return [partial(self._bin_maps, b, tuple(tolerances)) for b in range(self.BINS)]
+
+    def adopt(self, per_bin: list[tuple], tolerances: tuple[float, ...] = ()) -> None:
+        """Keep the results of ``bin_jobs(tolerances)``, in the order of the jobs."""
+        with self._nearest_lock:
+            self._nearest_like = self._nearest_tables([nearest for nearest, _, _ in per_bin])
+        for i, t in enumerate(tolerances):
+            self._near_like[t] = np.stack([near[i] for _, near, _ in per_bin]).view(bool)
+            self._chance[t] = np.stack([chance[i] for _, _, chance in per_bin])
+
+    def _bin_maps(self, b: int, tolerances: tuple[float, ...]):
+        """Direction bin ``b``'s piece of ``nearest_like`` and of ``near_like`` and ``chance``
+        at each tolerance."""
+        near = [self._near_bin(b, t) for t in tolerances]
+        return self._nearest_bin(b), near, [self._chance_bin(n) for n in near]
+
     def orientation_bin(self, segments: np.ndarray) -> np.ndarray:
         return self._bins_of(segments[:, 1] - segments[:, 0])
 
@@ -301,12 +330,15 @@ class EdgeEvidence:
         False around the image: points outside it are clipped onto that border instead of
         being masked out (a mask costs several array operations). Cached per tolerance."""
         if tolerance_px not in self._near_like:
-            ball = chamfer_ball(tolerance_px)
-            near = np.zeros((self.BINS, self.shape[0] + 2, self.shape[1] + 2), np.uint8)
-            for b, like in enumerate(self.like_edges):
-                near[b, 1:-1, 1:-1] = cv2.dilate(like, ball)
+            near = np.stack([self._near_bin(b, tolerance_px) for b in range(self.BINS)])
             self._near_like[tolerance_px] = near.view(bool)  # 0/1 bytes, dilated from 0/1
         return self._near_like[tolerance_px]
+
+    def _near_bin(self, b: int, tolerance_px: float) -> np.ndarray:
+        """``near_like(tolerance_px)[b]`` as uint8."""
+        near = np.zeros((self.shape[0] + 2, self.shape[1] + 2), np.uint8)
+        near[1:-1, 1:-1] = cv2.dilate(self.like_edges[b], chamfer_ball(tolerance_px))
+        return near
 
     def nearest_like(self) -> tuple[np.ndarray, np.ndarray]:
         """Per direction bin and pixel, the nearest pixel of ``like_edges``: (BINS, H, W)
@@ -315,19 +347,29 @@ class EdgeEvidence:
         first use, once per image (about 3 ms a bin at 640 x 480)."""
         with self._nearest_lock:
             if self._nearest_like is None:
-                labels = np.zeros((self.BINS,) + self.shape, np.int32)
-                tables = [np.full((1, 2), -1e6)]
-                for b, like in enumerate(self.like_edges):
-                    rows, cols = np.nonzero(like)
-                    if len(rows):
-                        _, labels[b] = cv2.distanceTransformWithLabels(1 - like, cv2.DIST_L2, 5,
-                                                                       labelType=cv2.DIST_LABEL_PIXEL)
-                        table = np.zeros((labels[b].max() + 1, 2))  # label -> (x, y) of its pixel
-                        table[labels[b, rows, cols]] = np.stack([cols, rows], axis=1)
-                        labels[b] += sum(len(t) for t in tables)
-                        tables.append(table)
-                self._nearest_like = labels, np.concatenate(tables)
+                self._nearest_like = self._nearest_tables([self._nearest_bin(b) for b in range(self.BINS)])
             return self._nearest_like
+
+    def _nearest_bin(self, b: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Bin ``b``'s labels (H, W) int32 and its label -> (x, y) table; None without pixels."""
+        like = self.like_edges[b]
+        rows, cols = np.nonzero(like)
+        if not len(rows):
+            return None
+        _, labels = cv2.distanceTransformWithLabels(1 - like, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+        table = np.zeros((labels.max() + 1, 2))  # label -> (x, y) of its pixel
+        table[labels[rows, cols]] = np.stack([cols, rows], axis=1)
+        return labels, table
+
+    def _nearest_tables(self, per_bin: list) -> tuple[np.ndarray, np.ndarray]:
+        """``nearest_like`` from the bins' ``_nearest_bin``: their labels offset into one table."""
+        labels = np.zeros((self.BINS,) + self.shape, np.int32)
+        tables = [np.full((1, 2), -1e6)]
+        for b, piece in enumerate(per_bin):
+            if piece is not None:
+                np.add(piece[0], sum(len(t) for t in tables), out=labels[b])
+                tables.append(piece[1])
+        return labels, np.concatenate(tables)
 
     @classmethod
     def grown_outline(cls, points: np.ndarray, min_margin_px: float) -> np.ndarray:
@@ -402,13 +444,15 @@ class EdgeEvidence:
         border of 0 like ``near_like``. Cached per tolerance."""
         if tolerance_px not in self._chance:
             near = self.near_like(tolerance_px).view(np.uint8)
-            chance = np.zeros(near.shape, np.float32)
-            for b in range(self.BINS):
-                chance[b, 1:-1, 1:-1] = cv2.boxFilter(near[b, 1:-1, 1:-1].astype(np.float32), -1,
-                                                      (self.CHANCE_WINDOW, self.CHANCE_WINDOW),
-                                                      borderType=cv2.BORDER_REFLECT)
-            self._chance[tolerance_px] = chance
+            self._chance[tolerance_px] = np.stack([self._chance_bin(near[b]) for b in range(self.BINS)])
         return self._chance[tolerance_px]
+
+    def _chance_bin(self, near: np.ndarray) -> np.ndarray:
+        """``chance`` of one bin from its ``near_like`` map (uint8, with its border)."""
+        chance = np.zeros(near.shape, np.float32)
+        chance[1:-1, 1:-1] = cv2.boxFilter(near[1:-1, 1:-1].astype(np.float32), -1,
+                                           (self.CHANCE_WINDOW, self.CHANCE_WINDOW), borderType=cv2.BORDER_REFLECT)
+        return chance
 
 
 @lru_cache(maxsize=16)
