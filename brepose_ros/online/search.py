@@ -138,29 +138,36 @@ class ResponseMaps:
         """The maps of the edge pixels, only those within ``box`` (x0, y0, x1, y1 pixels) if given."""
         h, w = evidence.shape
         hc, wc = -(-h // factor), -(-w // factor)
-        pooled = np.zeros((BINS, hc * factor, wc * factor), np.uint8)
-        if box is None:
-            pooled[:, :h, :w] = evidence.like_edges
-        else:
-            x0, y0, x1, y1 = box
-            pooled[:, y0:y1, x0:x1] = evidence.like_edges[:, y0:y1, x0:x1]
-        pooled = pooled.reshape(BINS, hc, factor, wc, factor).max(axis=(2, 4))
+        block = np.ones((factor, factor), np.uint8)
         kernel = np.ones((2 * spread + 1, 2 * spread + 1), np.uint8)
         maps = np.zeros((BINS, hc + 2 * pad, wc + 2 * pad), np.uint8)
-        for b in range(BINS):
-            maps[b, pad:pad + hc, pad:pad + wc] = cv2.dilate(pooled[b], kernel)
+        for b, like in enumerate(evidence.like_edges):
+            if box is not None:
+                x0, y0, x1, y1 = box
+                like = np.zeros_like(like)
+                like[y0:y1, x0:x1] = evidence.like_edges[b, y0:y1, x0:x1]
+            # the maximum over each factor x factor block of pixels: a dilation anchored at the
+            # block's first pixel, sampled there (a numpy reduction over the blocks took 30x longer)
+            pooled = cv2.dilate(like, block, anchor=(0, 0))[::factor, ::factor]
+            maps[b, pad:pad + hc, pad:pad + wc] = cv2.dilate(pooled, kernel)
         return cls(maps, pad, factor, (hc, wc), block_bounds(maps))
 
     def chance(self, window: int) -> np.ndarray:
         """(BINS, H, W) float32: each bin's share of set cells in a ``window``-wide square
         about each cell (outside the image counts as unset, as in the search)."""
+        return self.chances([window])[0]
+
+    def chances(self, windows: list[int], pool: WorkerPool = SERIAL) -> np.ndarray:
+        """(S, BINS, H, W): ``chance`` of each window, one job per bin on the ``pool``'s threads
+        (OpenCV's box filters, which release the GIL)."""
         hc, wc = self.shape
-        out = np.empty((BINS, hc, wc), np.float32)
-        for b in range(BINS):
-            box = cv2.boxFilter(self.maps[b].astype(np.float32), -1, (window, window), normalize=True,
-                                borderType=cv2.BORDER_CONSTANT)
-            out[b] = box[self.pad:self.pad + hc, self.pad:self.pad + wc]
-        return out
+
+        def of_bin(b: int) -> list[np.ndarray]:
+            cells = self.maps[b].astype(np.float32)
+            return [cv2.boxFilter(cells, -1, (window, window), normalize=True, borderType=cv2.BORDER_CONSTANT)
+                    [self.pad:self.pad + hc, self.pad:self.pad + wc] for window in windows]
+
+        return np.stack(pool.map(of_bin, range(BINS)), axis=1)
 
 
 def block_bounds(maps: np.ndarray) -> np.ndarray:
@@ -307,9 +314,14 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
 class TemplateSearch:
     """The search of the module doc for one aspect graph."""
 
+    #: sets of coarse templates kept (``_coarse_templates``): the image's sizes, and the
+    #: ``larger`` check's about a few places
+    KEPT_TEMPLATE_SETS = 4
+
     def __init__(self, graph: AspectGraph, p: SearchParams):
         self.graph = graph
         self.library = TemplateLibrary(graph, p)
+        self._templates: dict[tuple, tuple[np.ndarray, ...]] = {}
         self.warm()
 
     @staticmethod
@@ -350,6 +362,22 @@ class TemplateSearch:
         k = lib.n_points
         return dx.reshape(-1, k), dy.reshape(-1, k), np.ascontiguousarray(bins).reshape(-1, k)
 
+    def _coarse_templates(self, angle_count: int, sizes: np.ndarray, factor: int) -> tuple[np.ndarray, ...]:
+        """``templates`` of the coarse views at ``angle_count`` in-plane angles and each
+        template's view, angle, size and size index, read-only; kept for the next image (the
+        same camera and parameters give the same templates: 5 ms of each image's search)."""
+        key = (angle_count, factor, sizes.tobytes())
+        if key not in self._templates:
+            if len(self._templates) >= self.KEPT_TEMPLATE_SETS:
+                self._templates.clear()
+            views = self.library.coarse_views
+            angles = np.arange(angle_count) * (2 * np.pi / angle_count)
+            arrays = (*self.templates(views, angles, sizes, factor), np.repeat(views, len(angles) * len(sizes)),
+                      np.tile(np.repeat(angles, len(sizes)), len(views)), np.tile(sizes, len(views) * len(angles)),
+                      np.tile(np.arange(len(sizes)), len(views) * len(angles)))
+            self._templates[key] = arrays
+        return self._templates[key]
+
     def coarse(self, frame: Frame, p: SearchParams, pool: WorkerPool = SERIAL, sizes: np.ndarray | None = None,
                box: tuple[int, int, int, int] | None = None) -> "CoarseResult":
         """Every coarse template's best score and position in the image (module doc, step 3);
@@ -361,16 +389,12 @@ class TemplateSearch:
         sizes = self.sizes(frame, p) if sizes is None else sizes
         pad = int(np.ceil(sizes[-1] / factor / 2)) + p.spread + 1
         maps = ResponseMaps.of(frame.evidence, factor, p.spread, pad, box)
-        chance = np.stack([maps.chance(max(3, int(round(d / factor)) | 1)) for d in sizes])
-        views = lib.coarse_views
-        angles = np.arange(p.angles) * (2 * np.pi / p.angles)
-        dx, dy, bins = self.templates(views, angles, sizes, factor)
+        chance = maps.chances([max(3, int(round(d / factor)) | 1) for d in sizes], pool)
+        dx, dy, bins, view, angle, size, size_index = self._coarse_templates(p.angles, sizes, factor)
         n = len(dx)
-        result = CoarseResult(score=np.full(n, -1.0), y=np.zeros(n, np.int64), x=np.zeros(n, np.int64),
-                              view=np.repeat(views, len(angles) * len(sizes)),
-                              angle=np.tile(np.repeat(angles, len(sizes)), len(views)),
-                              size=np.tile(sizes, len(views) * len(angles)),
-                              size_index=np.tile(np.arange(len(sizes)), len(views) * len(angles)), factor=factor)
+        result = CoarseResult(score=np.full(n, -1.0), y=np.zeros(n, np.int64), x=np.zeros(n, np.int64), view=view,
+                              angle=angle, size=size, size_index=size_index, factor=factor)
+
         def run(chunk: slice) -> None:
             score_templates(maps.maps, maps.bounds, pad, dx[chunk], dy[chunk], bins[chunk], result.size_index[chunk],
                             chance, lib.n_points // PROBE_STRIDE, probe_share(maps, p), ranked_templates(p),
