@@ -152,10 +152,12 @@ def image_record(result) -> dict:
     return record | (e.to_dict() if e is not None else {})
 
 
-def at_min_confidence(row: dict, min_confidence: float) -> dict:
-    """A results row as if ``pose.min_confidence`` had been ``min_confidence``: a found pose
-    of lower confidence becomes not found (records without a confidence are kept as found)."""
-    dropped = [i for i in row["images"] if i["found"] and i.get("confidence", 1.0) < min_confidence]
+def at_found_rule(row: dict, min_confidence: float, min_score: float = 0.0) -> dict:
+    """A results row as if ``pose.min_confidence`` and ``pose.min_score`` had been these: a
+    found pose of lower confidence or score becomes not found (records without a confidence
+    are kept as found; a rule can only drop poses the run found)."""
+    dropped = [i for i in row["images"] if i["found"] and (i.get("confidence", 1.0) < min_confidence or
+                                                           i["score"] < min_score)]
     images = [{"image": i["image"], "found": False, "score": i["score"], "error_ratio": i["error_ratio"],
                "confidence": i["confidence"], "ms": i["ms"]} if i in dropped else i for i in row["images"]]
     return row | {"images": images}
@@ -254,10 +256,13 @@ def main(argv=None) -> int:
     parser.add_argument("--min-confidence", type=float, default=0.0,
                         help="with --report: the tables as if pose.min_confidence had been this (a pose of lower "
                              "confidence not found)")
+    parser.add_argument("--min-score", type=float, default=0.0,
+                        help="with --report: the same for pose.min_score (a rule can only drop poses the run found: "
+                             "run at the lowest floor compared)")
     args = parser.parse_args(argv)
     if args.report:
         rows = [row for path in args.report for row in json.loads(path.read_text())["rows"]]
-        rows = [at_min_confidence(row, args.min_confidence) for row in rows]
+        rows = [at_found_rule(row, args.min_confidence, args.min_score) for row in rows]
         print_tables(rows)
         print_found(rows)
         return 0

@@ -1,20 +1,34 @@
-"""Can the score be thresholded? Precision and recall of `found` against the score, and the
-calibrated `pose.min_score`.
+"""Can the score be thresholded, and which found rule? Precision and recall of `found`
+against the score, the fitted confidence, and the found rule chosen on them.
 
-    python bench/confidence.py [--n 12] [--parts sharp_bracket rounded_bracket ...] [--check-parts shaft ...]
-                               [--params FILE.yaml] [--precision 0.95] [--plot docs/figures/precision_recall.png]
+    python bench/confidence.py [--n 8] [--parts sharp_bracket rounded_bracket ...] [--check-parts shaft ...]
+                               [--params FILE.yaml] [--records FILE.json | --from-records FILE.json]
+                               [--fit brepose_ros/confidence.yaml] [--confidence-plot docs/figures/found_rule.png]
 
-Each part's estimator sees images of its part (positives: clean, and off-centre with 20 %
-occlusion among clutter), where a detection is correct when the pose succeeds (rotation
-< 5 deg, translation < 5 % of the diameter), and the clean images of every *other* part
-(scenes without it), where any detection is wrong. Pooled over the parts, for each
-threshold on the score: precision = correct detections / all detections, recall = correct
-detections / images of the part; a pose turned by an exact symmetry of the part is right.
-The calibrated min_score is the lowest threshold whose
-precision reaches ``--precision`` (``metrics.calibrate_min_score``), chosen on ``--parts``
-(default: bench/accuracy.py's tuning set) and checked on ``--check-parts`` (leave-out parts,
-measured the same way among themselves), once with every negative and once without the
-images of a part's look-alike (``LOOK_ALIKES``). Scenes and graphs are shared with
+Each part's estimator sees images of its part (positives: clean, and off-centre with 20, 30
+and 50 % occlusion among clutter), where a detection is correct when the pose succeeds
+(rotation < 5 deg, translation < 5 % of the diameter; a pose turned by an exact symmetry
+of the part is right), and the clean and occl30+clutter images of every *other* part
+(scenes without it), where any detection is wrong; the estimator reports every pose
+scoring ``RECORD_FLOOR`` or more, so that rules with a lower floor than today's can be
+judged. Pooled over the parts: precision = correct detections / all detections, recall =
+correct detections / images of the part.
+
+Printed, on ``--parts`` (default: bench/accuracy.py's tuning set) and checked on
+``--check-parts`` (leave-out parts, measured the same way among themselves): the calibrated
+min_score (the lowest score threshold whose precision reaches ``--precision``); the
+confidence (``online/confidence.py``) fitted on ``--parts`` alone (``--fit`` writes it);
+the found rule (``pose.min_score``, ``pose.min_confidence``) chosen on ``--parts`` as the
+one finding the most right poses with recall and precision at least today's (score >=
+0.6), its trade curve, and the confidence's calibration at several shares of images
+holding the part (``pose.prior``). Refit after any change to what the estimator finds:
+
+    nice -n 5 python bench/confidence.py --n 8 --check-parts motor1_holder shaft flange \
+        --records docs/results/confidence_records.json --fit brepose_ros/confidence.yaml \
+        --features score confirmed explained log_insignificance error_ratio twin_margin ambiguous log_size \
+        log_model_length --confidence-plot docs/figures/found_rule.png
+
+and set the printed rule in brepose_ros/params.py. Scenes and graphs are shared with
 bench/accuracy.py (data/bench/).
 """
 from __future__ import annotations
@@ -36,14 +50,21 @@ from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.figures import pyplot, save_figure  # noqa: E402
 from brepose_ros.evaluation.metrics import (ModelPoints, calibrate_min_score, evaluate_scene,  # noqa: E402
-                                            precision_recall)
+                                            precision_recall, reliability)
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros import __version__  # noqa: E402
 from brepose_ros.online.confidence import FEATURES, SHIPPED, Calibration, features  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
 
-POSITIVE_CONDITIONS = ("clean", "occl20+clutter")
+#: the part's own scenes (positives) and the other parts' scenes (negatives: any pose is wrong);
+#: occluded ones on both sides, so that the confidence is fitted and checked where the part is
+#: partly hidden and where clutter, not the part, is in view
+POSITIVE_CONDITIONS = ("clean", "occl20+clutter", "occl30+clutter", "occl50+clutter")
+NEGATIVE_CONDITIONS = ("clean", "occl30+clutter")
+#: the estimator reports every pose scoring this or more while recording, so that the
+#: correctness of poses below today's pose.min_score is known (found rules with a lower floor)
+RECORD_FLOOR = 0.3
 #: a part's look-alike: the seed paper's Fig. 7 pair, the same L body with and without
 #: fillets, which no edge score tells apart at the bench's sizes (docs/results/confidence.md);
 #: the threshold is calibrated with and without their images among the negatives
@@ -53,19 +74,26 @@ LOOK_ALIKES = {"sharp_bracket": "rounded_bracket", "rounded_bracket": "sharp_bra
 PROBE_FEATURES = ("score", "error_ratio", "confirmed", "explained", "log_insignificance", "twin_margin", "ambiguous")
 #: the fit's default L2 weight on the standardised weights
 L2 = 0.01
-#: the found rules on the confidence reported
-MIN_CONFIDENCES = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
-CALIBRATION_HEADER = """The confidence of brepose_ros (online/confidence.py): a logistic model of the probability
-that an estimate's pose is right, fitted by bench/confidence.py --fit on the tuning parts' scenes
-with and without the part (provenance below). The checksum covers the numbers and the
-provenance: edit nothing by hand, fit again."""
+#: today's found rule before this bench chose one: score >= 0.6
+TODAY = 0.6
+#: the found rules tried: pose.min_score (the score's floor) and pose.min_confidence
+FLOORS = (0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6)
+LEVELS = tuple(float(v) for v in np.round(np.r_[np.arange(0.01, 0.1, 0.01), np.arange(0.1, 0.95, 0.05)], 2))
+#: shares of images holding the part at which the confidence's calibration is shown
+PRIORS = (0.2, 0.5, 1.0)
+CALIBRATION_HEADER = """The confidence of brepose_ros (online/confidence.py): logistic models of whether the part is
+in view and whether the pose is right where it is, whose product is the probability that an
+estimate's pose is right, fitted by bench/confidence.py --fit on the tuning parts' scenes with
+and without the part (provenance below; prior: the share of those images holding the part).
+The checksum covers the numbers and the provenance: edit nothing by hand, fit again."""
 
 
 class Collector:
     """What each part's estimator reports on its own scenes and on the other parts' clean ones."""
 
     def __init__(self, n: int, seed: int, step_deg: float, look: str, params: EstimatorParams, cache: Path):
-        self.n, self.seed, self.step_deg, self.look, self.params, self.cache = n, seed, step_deg, look, params, cache
+        self.n, self.seed, self.step_deg, self.look, self.cache = n, seed, step_deg, look, cache
+        self.params = params.with_flat({"pose.min_score": RECORD_FLOOR, "pose.min_confidence": 0.0})
         self.distractors = distractor_meshes(cache)
 
     def scene(self, name: str, step: Path, condition: str):
@@ -84,7 +112,7 @@ class Collector:
         for name, step in steps.items():
             estimator = Estimator(AspectGraph.load(cached_graph_path(step, self.cache, self.step_deg)), self.params)
             for other, other_step in steps.items():
-                for condition in POSITIVE_CONDITIONS if other == name else ("clean",):
+                for condition in POSITIVE_CONDITIONS if other == name else NEGATIVE_CONDITIONS:
                     for r in evaluate_scene(self.scene(other, other_step, condition), estimator, models[other]):
                         # a pose turned by an exact symmetry of the part is the same pose
                         correct = other == name and bool(r.errors and r.errors.success_sym)
@@ -124,7 +152,8 @@ def main(argv=None) -> int:
     parser.add_argument("--features", nargs="+", default=list(FEATURES), choices=list(FEATURES),
                         help="features of the fitted confidence")
     parser.add_argument("--l2", type=float, default=L2, help="L2 weight of the fit (standardised features)")
-    parser.add_argument("--confidence-plot", type=Path, default=REPO / "data" / "bench" / "confidence_vs_score.png")
+    parser.add_argument("--confidence-plot", type=Path, default=REPO / "data" / "bench" / "found_rule.png",
+                        help="found rules (precision against recall) and the confidence's reliability")
     args = parser.parse_args(argv)
     cache = REPO / "data" / "bench"
     cache.mkdir(parents=True, exist_ok=True)
@@ -195,9 +224,11 @@ def fit_confidence(tuning: list[dict], names: tuple[str, ...], l2: float, args) 
     """The confidence fitted on the tuning parts' estimates, written to ``--fit`` with its
     provenance; the choice of features and L2 weight shown by leave-one-part-out."""
     x, y = feature_matrix(tuning, names), np.array([r["correct"] for r in tuning], bool)
+    present = np.array([r["owner"] == r["part"] for r in tuning], bool)
     owners = np.array([r["owner"] for r in tuning])
-    print(f"\nconfidence fitted on {len(y)} estimates of {', '.join(args.parts)} ({y.sum()} right): "
-          "average precision of each part's estimates under the fit on the other parts")
+    print(f"\nconfidence fitted on {len(y)} estimates of {', '.join(args.parts)} ({y.sum()} right, "
+          f"{present.sum()} of images holding the part): average precision of each part's estimates under the "
+          "fit on the other parts")
     print("\n| features | L2 | " + " | ".join(dict.fromkeys(owners)) + " | pooled |\n|---|---|" +
           "---|" * (len(set(owners)) + 1))
     for set_name, chosen in (("probe", PROBE_FEATURES), ("all", tuple(FEATURES)), ("--features", names)):
@@ -206,74 +237,207 @@ def fit_confidence(tuning: list[dict], names: tuple[str, ...], l2: float, args) 
             cells = []
             for name in dict.fromkeys(owners):
                 mine = owners == name
-                held[mine] = Calibration.fit(feature_matrix(tuning, chosen)[~mine], y[~mine], chosen,
-                                             weight).logit(feature_matrix(tuning, chosen)[mine])
+                held[mine] = Calibration.fit(feature_matrix(tuning, chosen)[~mine], y[~mine], present[~mine], chosen,
+                                             weight).probability(feature_matrix(tuning, chosen)[mine])
                 cells.append(f"{average_precision(held[mine], y[mine]):.2f}")
             print(f"| {set_name} | {weight:g} | " + " | ".join(cells) + f" | {average_precision(held, y):.2f} |")
     score = np.array([r["score"] for r in tuning])
     print("| score alone | | " + " | ".join(f"{average_precision(score[owners == n], y[owners == n]):.2f}"
                                           for n in dict.fromkeys(owners)) + f" | {average_precision(score, y):.2f} |")
     provenance = {"parts": list(args.parts), "scenes": f"{args.n} images per part and condition "
-                  f"({', '.join(POSITIVE_CONDITIONS)} of the part, clean of the other parts), seed {args.seed}, "
-                  f"{args.look} look, graphs at {args.step_deg:g} deg",
+                  f"({', '.join(POSITIVE_CONDITIONS)} of the part; {', '.join(NEGATIVE_CONDITIONS)} of the other "
+                  f"parts), seed {args.seed}, {args.look} look, graphs at {args.step_deg:g} deg",
                   "estimates": int(len(y)), "right": int(y.sum()), "l2": l2, "version": __version__,
                   "commit": git_commit(), "command": "python bench/confidence.py " + " ".join(sys.argv[1:])}
-    calibration = Calibration.fit(x, y, names, l2, provenance)
+    calibration = Calibration.fit(x, y, present, names, l2, provenance)
     if args.fit:
         calibration.save(args.fit, CALIBRATION_HEADER)
         calibration = Calibration.load(args.fit)
         print(f"\nwrote {args.fit}")
-    print("\n| feature | weight (standardised) |\n|---|---|")
-    for name, w in zip(calibration.features, calibration.weights):
-        print(f"| {name} | {w:+.2f} |")
-    print(f"| (bias) | {calibration.bias:+.2f} |")
+    print(f"\nfitted at prior {calibration.prior:.2f} (share of the estimates' images holding the part)\n\n"
+          "| feature | weight: part in view | weight: pose right where it is |\n|---|---|---|")
+    for name, a, b in zip(calibration.features, calibration.present.weights, calibration.right.weights):
+        print(f"| {name} | {a:+.2f} | {b:+.2f} |")
+    print(f"| (bias) | {calibration.present.bias:+.2f} | {calibration.right.bias:+.2f} |")
     return calibration
 
 
+class Outcomes:
+    """A set of estimates as found rules see them: score, confidence at ``prior``, right,
+    whether the image holds the part, and its condition."""
+
+    def __init__(self, records: list[dict], calibration: Calibration, prior: float | None = None):
+        self.score, self.correct, self.positive, _, _ = arrays(records)
+        self.confidence = calibration.probability(feature_matrix(records, calibration.features), prior)
+        self.condition = np.array([r["condition"] for r in records])
+
+    def rule(self, floor: float, level: float, among=None) -> tuple[int, int, float, float]:
+        """Found (score >= floor and confidence >= level): detections, right ones, precision
+        (right / detections, 1 when none) and recall (right / images with the part), over
+        the estimates ``among`` (a mask; default all)."""
+        among = np.ones(len(self.score), bool) if among is None else among
+        found = (self.score >= floor) & (self.confidence >= level) & among
+        right = int((found & self.correct).sum())
+        n = int(found.sum())
+        return n, right, right / n if n else 1.0, right / max(int((self.positive & among).sum()), 1)
+
+
+def choose_rule(outcomes: Outcomes) -> tuple[float, float] | None:
+    """The (floor, level) of ``FLOORS`` x ``LEVELS`` with the most right poses found among
+    those whose recall and precision are both at least today's rule's (score >= TODAY), the
+    higher precision on a tie; None if none is."""
+    _, _, today_p, today_r = outcomes.rule(TODAY, 0.0)
+    best, key = None, None
+    for floor in FLOORS:
+        for level in LEVELS:
+            _, right, p, r = outcomes.rule(floor, level)
+            if p >= today_p and r >= today_r and (key is None or (right, p) > key):
+                best, key = (floor, float(level)), (right, p)
+    return best
+
+
 def report_confidence(calibration: Calibration, tuning: list[dict], checked: list[dict], args) -> None:
-    """Score against the fitted confidence as a found rule, on the tuning parts and on the
-    leave-out parts (never fitted on), and their precision-recall curves."""
-    curves = {}
+    """Score against the fitted confidence: ranking, found rules (chosen on the tuning
+    parts, checked on the leave-out parts, never fitted on), and calibration at several
+    shares of images holding the part."""
+    sets = {"tuning parts": tuning, "leave-out parts": checked} if checked else {"tuning parts": tuning}
     print("\n| set | ranking | average precision | recall at precision >= 0.9 | recall at >= 0.95 |\n"
           "|---|---|---|---|---|")
-    for label, records in (("tuning parts", tuning), ("leave-out parts", checked)):
-        if not records:
-            continue
-        scores, correct, positive, _, _ = arrays(records)
-        confidence = calibration.probability(feature_matrix(records, calibration.features))
-        for ranking, values in (("score", scores), ("confidence", confidence)):
-            curves[f"{label}, {ranking}"] = (values, correct, positive.sum())
+    for label, records in sets.items():
+        o = Outcomes(records, calibration)
+        for ranking, values in (("score", o.score), ("confidence", o.confidence)):
             cells = []
             for target in (0.9, 0.95):
-                th = calibrate_min_score(values, correct, target)
+                th = calibrate_min_score(values, o.correct, target)
                 cells.append("none" if th is None else
-                             f"{precision_recall(values, correct, positive.sum(), [th])[1][0]:.2f} (at {th:.2f})")
-            print(f"| {label} | {ranking} | {average_precision(values, correct):.2f} | " + " | ".join(cells) + " |")
-    for label, records in (("tuning parts", tuning), ("leave-out parts", checked)):
-        if not records:
-            continue
-        scores, correct, positive, _, _ = arrays(records)
-        confidence = calibration.probability(feature_matrix(records, calibration.features))
-        print(f"\n{label} ({positive.sum()} images with the part, {correct.sum()} right poses, "
-              f"{len(records)} estimates): found rules\n\n| rule | detections | right | precision | recall |\n"
-              "|---|---|---|---|---|")
-        rules = {"score >= 0.6 (today)": scores >= 0.6}
-        for th in MIN_CONFIDENCES:
-            rules[f"confidence >= {th:g}"] = confidence >= th
-            rules[f"score >= 0.6 and confidence >= {th:g}"] = (scores >= 0.6) & (confidence >= th)
-        for rule, found in rules.items():
-            right = int((found & correct).sum())
-            print(f"| {rule} | {found.sum()} | {right} | {right / max(found.sum(), 1):.2f} | "
-                  f"{right / max(positive.sum(), 1):.2f} |")
-        edges = np.linspace(0, 1, 6)
-        bins = np.clip(np.digitize(confidence, edges) - 1, 0, 4)
-        print("\n| confidence | estimates | right (share) |\n|---|---|---|")
-        for b in range(5):
-            mine = bins == b
-            print(f"| {edges[b]:.1f}-{edges[b + 1]:.1f} | {mine.sum()} | "
-                  f"{correct[mine].sum()} ({correct[mine].mean() if mine.any() else float('nan'):.2f}) |")
-    plot_confidence(args.confidence_plot, curves)
+                             f"{precision_recall(values, o.correct, o.positive.sum(), [th])[1][0]:.2f} (at {th:.2f})")
+            print(f"| {label} | {ranking} | {average_precision(values, o.correct):.2f} | " + " | ".join(cells) + " |")
+    outcomes = {label: Outcomes(records, calibration) for label, records in sets.items()}
+    chosen = choose_rule(outcomes["tuning parts"])
+    print(f"\nfound rule chosen on the tuning parts (most right poses with recall and precision at least "
+          f"score >= {TODAY:g}'s): " + ("none" if chosen is None else
+                                        f"pose.min_score {chosen[0]:g}, pose.min_confidence {chosen[1]:g}"))
+    header = " | ".join(f"{label}: found, right, precision, recall" for label in sets)
+    print(f"\n| rule | {header} |\n|---|" + "---|" * len(sets))
+
+    def row(name, floor, level, among=None):
+        cells = [outcomes[label].rule(floor, level, None if among is None else among(outcomes[label]))
+                 for label in sets]
+        print(f"| {name} | " + " | ".join(f"{n}, {r}, {p:.2f}, {rec:.2f}" for n, r, p, rec in cells) + " |")
+
+    row(f"score >= {TODAY:g} (today)", TODAY, 0.0)
+    for floor in FLOORS:
+        best = choose_rule_at(outcomes["tuning parts"], floor)
+        if best is not None:
+            row(f"score >= {floor:g}, confidence >= {best:g} (best at this floor)", floor, best)
+    if chosen is not None:
+        print(f"\ntrade curve at pose.min_score {chosen[0]:g} (the chosen floor):\n\n| rule | {header} |\n|---|" +
+              "---|" * len(sets))
+        for level in LEVELS:
+            row(f"confidence >= {level:g}", chosen[0], level)
+        print(f"\nper condition, images with the part only (right of found as bench/accuracy.py counts it):\n\n"
+              f"| condition, rule | {header} |\n|---|" + "---|" * len(sets))
+        for condition in POSITIVE_CONDITIONS:
+            for name, floor, level in ((f"score >= {TODAY:g}", TODAY, 0.0), ("chosen", *chosen)):
+                row(f"{condition}, {name}", floor, level, lambda o: o.positive & (o.condition == condition))
+    print_reliability(calibration, sets)
+    plot_rules(args.confidence_plot, calibration, sets, chosen)
     print(f"\nwrote {args.confidence_plot}")
+
+
+def choose_rule_at(outcomes: Outcomes, floor: float) -> float | None:
+    """The level of ``LEVELS`` with the most right poses found at ``floor`` while its
+    precision is at least today's rule's."""
+    _, _, today_p, _ = outcomes.rule(TODAY, 0.0)
+    passing = [(outcomes.rule(floor, level)[1], outcomes.rule(floor, level)[2], float(level)) for level in LEVELS
+               if outcomes.rule(floor, level)[2] >= today_p]
+    return max(passing)[2] if passing else None
+
+
+def prior_weights(positive: np.ndarray, prior: float) -> np.ndarray:
+    """Weights that make a share ``prior`` of the estimates' images hold the part."""
+    share = positive.mean()
+    return np.where(positive, prior / share, (1.0 - prior) / (1.0 - share))
+
+
+def print_reliability(calibration: Calibration, sets: dict) -> None:
+    """Mean confidence against the share right and the expected calibration error, at
+    several shares of images holding the part, with the prior corrected (pose.prior) and
+    left at the fit's mix; then the same per condition where the part is always in view."""
+    print("\n| set | part in view in | pose.prior | estimates | mean confidence | right | ECE |\n"
+          "|---|---|---|---|---|---|---|")
+    for label, records in sets.items():
+        x = feature_matrix(records, calibration.features)
+        _, correct, positive, _, _ = arrays(records)
+        for prior in PRIORS:
+            among = positive if prior >= 1.0 else np.ones(len(records), bool)
+            weights = prior_weights(positive, prior)[among] if 0.0 < prior < 1.0 else None
+            for setting in dict.fromkeys((prior, None)):
+                confidence = calibration.probability(x[among], setting)
+                error, _ = reliability(confidence, correct[among], weights)
+                mean = np.average(confidence, weights=weights)
+                print(f"| {label} | {prior:.0%} of images | {'fit mix' if setting is None else f'{setting:g}'} | "
+                      f"{among.sum()} | {mean:.2f} | {np.average(correct[among], weights=weights):.2f} | "
+                      f"{error:.3f} |")
+    print("\n| set | condition (part always in view) | images | mean confidence at pose.prior 1 | right |\n"
+          "|---|---|---|---|---|")
+    for label, records in sets.items():
+        o = Outcomes(records, calibration, 1.0)
+        for condition in POSITIVE_CONDITIONS:
+            mine = o.positive & (o.condition == condition)
+            print(f"| {label} | {condition} | {mine.sum()} | {o.confidence[mine].mean():.2f} | "
+                  f"{o.correct[mine].mean():.2f} |")
+
+
+def plot_rules(path: Path, calibration: Calibration, sets: dict, chosen) -> None:
+    """Left: precision against recall of the found rules (score alone; the confidence above
+    the chosen floor), today's and the chosen rule marked. Right: the leave-out (else the
+    tuning) parts' reliability at their own mix and where the part is always in view."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.0))
+    styles = {"tuning parts": ":", "leave-out parts": "-"}
+    floor = TODAY if chosen is None else chosen[0]
+    for label, records in sets.items():
+        o = Outcomes(records, calibration)
+        curve = np.array([o.rule(th, 0.0)[2:] for th in np.linspace(0.3, 1.0, 71)])
+        axes[0].plot(curve[:, 1], curve[:, 0], styles[label], color="tab:blue", label=f"{label}: score alone")
+        curve = np.array([o.rule(floor, level)[2:] for level in np.linspace(0.0, 0.99, 100)])
+        axes[0].plot(curve[:, 1], curve[:, 0], styles[label], color="tab:red",
+                     label=f"{label}: score >= {floor:g}, confidence")
+        _, _, p, r = o.rule(TODAY, 0.0)
+        axes[0].plot([r], [p], "o", color="tab:blue", markersize=6)
+        if chosen is not None:
+            _, _, p, r = o.rule(*chosen)
+            axes[0].plot([r], [p], "*", color="tab:red", markersize=10)
+    axes[0].set_xlabel("recall (right poses found / images of the part)")
+    axes[0].set_ylabel("precision (right / found)")
+    axes[0].set_xlim(0, 0.6)
+    axes[0].set_ylim(0, 1.05)
+    axes[0].grid(alpha=0.3)
+    axes[0].legend(fontsize=7, loc="lower left")
+    axes[0].set_title(f"o: score >= {TODAY:g} (today); *: " +
+                      ("none chosen" if chosen is None else f"score >= {chosen[0]:g}, confidence >= {chosen[1]:g}"),
+                      fontsize=9)
+    label = "leave-out parts" if "leave-out parts" in sets else "tuning parts"
+    records = sets[label]
+    x = feature_matrix(records, calibration.features)
+    _, correct, positive, _, _ = arrays(records)
+    for name, among, setting, style in (("images with and without the part, fit mix", np.ones(len(records), bool),
+                                         None, "o-"),
+                                        ("part always in view, pose.prior 1", positive, 1.0, "s-"),
+                                        ("part always in view, no correction", positive, None, "^:")):
+        error, rows = reliability(calibration.probability(x[among], setting), correct[among])
+        rows = np.array(rows)
+        axes[1].plot(rows[:, 1], rows[:, 2], style, label=f"{name} (ECE {error:.3f})")
+    axes[1].plot([0, 1], [0, 1], color="grey", linewidth=1)
+    axes[1].set_xlabel("confidence (bin mean)")
+    axes[1].set_ylabel("share of poses right")
+    axes[1].set_xlim(0, 1)
+    axes[1].set_ylim(0, 1.05)
+    axes[1].grid(alpha=0.3)
+    axes[1].legend(fontsize=7, loc="upper left")
+    axes[1].set_title(f"reliability, {label}", fontsize=9)
+    save_figure(fig, path, dpi=72)
 
 
 def feature_matrix(records: list[dict], names) -> np.ndarray:
@@ -343,33 +507,6 @@ def plot(path: Path, curves: dict, scores, correct, positive, calibrated, target
     axes[1].legend(fontsize=8)
     axes[1].set_title(f"{next(iter(curves))}", fontsize=9)
     fig.suptitle("score against correctness, pooled over the parts", fontsize=10)
-    save_figure(fig, path, dpi=72)
-
-
-def plot_confidence(path: Path, curves: dict) -> None:
-    """Precision against recall of the score and of the confidence (``curves``: label ->
-    values, correct, images with the part), with the found rules in use marked."""
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(5.2, 4.0))
-    styles = {"tuning parts": ":", "leave-out parts": "-"}
-    for label, (values, correct, n_positive) in curves.items():
-        grid = np.unique(np.concatenate([values, [np.inf]]))
-        precision, recall, _ = precision_recall(values, correct, n_positive, grid)
-        kind = label.split(", ")[1]
-        ax.plot(recall, precision, styles[label.split(", ")[0]], color="tab:blue" if kind == "score" else "tab:red",
-                label=label)
-        th = 0.6 if kind == "score" else 0.5
-        (p,), (r,), _ = precision_recall(values, correct, n_positive, [th])
-        ax.plot([r], [p], "o", color="tab:blue" if kind == "score" else "tab:red", markersize=5)
-        ax.annotate(f"{kind} {th:g}", (r, p), fontsize=7, xytext=(4, -8), textcoords="offset points")
-    ax.axhline(0.95, color="grey", linestyle=":", linewidth=1)
-    ax.set_xlabel("recall (right poses found / images of the part)")
-    ax.set_ylabel("precision")
-    ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1.05)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="lower left")
-    ax.set_title("score against the fitted confidence", fontsize=9)
     save_figure(fig, path, dpi=72)
 
 

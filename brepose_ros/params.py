@@ -149,10 +149,18 @@ class PoseParams(Ranged):
         "floor of the margin around a pose's projected outline inside which the score counts edge pixels the pose "
         "does not explain, pixels: stops a small pose that fits one inner feature of the part (a hole) from "
         "outscoring the whole part", 40.0, 0.0, 1000.0)
-    min_score: float = doc("a pose with a lower score is reported as not found", 0.6, 0.0, 1.0)
+    min_score: float = doc(
+        "floor of the found rule: a pose with a lower score is reported as not found, whatever its confidence",
+        0.55, 0.0, 1.0)
     min_confidence: float = doc(
         "a pose whose confidence (the calibrated probability that it is right, online/confidence.py) is lower is "
-        "reported as not found; 0 leaves the decision to pose.min_score", 0.0, 0.0, 1.0)
+        "reported as not found. The default, with pose.min_score 0.55, was chosen by bench/confidence.py on the "
+        "tuning parts to find at least as many right poses as score >= 0.6 at no lower precision "
+        "(docs/results/confidence.md); 0.35-0.4 reports fewer poses that are nearly all right", 0.04, 0.0, 1.0)
+    prior: float = doc(
+        "how often the part is in view, as a share of the images (1: always); the confidence is moved by Bayes' "
+        "rule from the mix it was fitted at (half the images, brepose_ros/confidence.yaml) to this, so that it is "
+        "the probability that the pose is right where the part is this often in view", 0.5, 0.0, 1.0)
     confidence_file: str = doc(
         "calibration file of the confidence (bench/confidence.py --fit writes one); empty: the shipped "
         "brepose_ros/confidence.yaml", "")

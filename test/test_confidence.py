@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 import yaml
 
-from brepose_ros.online.confidence import FEATURES, Calibration, features, load_calibration, shipped_path
-from brepose_ros.online.estimator import Estimate
+from brepose_ros.evaluation.metrics import reliability
+from brepose_ros.online.confidence import FEATURES, Calibration, Logistic, features, load_calibration, shipped_path
+from brepose_ros.online.estimator import Estimate, is_found
 from brepose_ros.online.scoring import Shares
 from brepose_ros.params import EstimatorParams
 
@@ -24,7 +25,7 @@ def synthetic(weights, bias, n=20000, seed=0):
 def test_the_fit_recovers_known_weights():
     weights, bias = [2.0, -1.0, 0.0], -0.5
     x, y = synthetic(weights, bias)
-    fitted = Calibration.fit(x, y, NAMES, l2=1e-6)
+    fitted = Logistic.fit(x, y, l2=1e-6)
     np.testing.assert_allclose(fitted.weights, weights, atol=0.1)
     assert fitted.bias == pytest.approx(bias, abs=0.1)
     # calibrated: among estimates given about 0.7, about 70 % are right
@@ -35,14 +36,62 @@ def test_the_fit_recovers_known_weights():
 
 def test_the_l2_term_keeps_a_perfect_separator_finite():
     x = np.array([[0.1, 0.8, 0.4], [0.2, 0.8, 0.4], [0.8, 0.8, 0.4], [0.9, 0.8, 0.4]])
-    fitted = Calibration.fit(x, np.array([False, False, True, True]), NAMES, l2=0.01)
+    fitted = Logistic.fit(x, np.array([False, False, True, True]), l2=0.01)
     assert 0 < fitted.weights[0] < 20 and fitted.weights[1] == 0.0  # a constant feature gets no weight
     assert fitted.probability(x[:1])[0] < 0.5 < fitted.probability(x[3:])[0]
 
 
+def bench(share, n, seed):
+    """Estimates of a bench where a share ``share`` of the images hold the part: features
+    drawn apart for images with and without it (the score higher with it), the pose right
+    on an image with the part with a probability rising with the score."""
+    rng = np.random.default_rng(seed)
+    present = rng.random(n) < share
+    x = np.where(present[:, None], [0.7, 0.8, 0.3], [0.45, 0.7, 0.5]) + [0.15, 0.1, 0.2] * rng.standard_normal((n, 3))
+    right = present & (rng.random(n) < 1.0 / (1.0 + np.exp(-(x[:, 0] - 0.7) / 0.1)))
+    return x, right, present
+
+
+def test_the_prior_moves_the_confidence_to_the_share_of_images_holding_the_part():
+    fitted = Calibration.fit(*bench(0.5, 20000, 1), NAMES, l2=1e-6)
+    assert fitted.prior == pytest.approx(0.5, abs=0.01)
+    x = np.array([[0.6, 0.8, 0.4]])
+    rare, fit_mix, often, always = (fitted.probability(x, prior)[0] for prior in (0.1, None, 0.9, 1.0))
+    assert 0.0 == fitted.probability(x, 0.0)[0] < rare < fit_mix < often < always
+    assert always == pytest.approx(fitted.right.probability(x)[0])
+    assert fitted.probability(x, 0.5)[0] == pytest.approx(fit_mix, abs=0.01)
+    # checked on a bench where 90 % of the images hold the part: calibrated with the prior
+    # said, understated without it
+    x, right, _ = bench(0.9, 20000, 2)
+    corrected, _ = reliability(fitted.probability(x, 0.9), right)
+    uncorrected, _ = reliability(fitted.probability(x), right)
+    assert corrected < 0.015 and uncorrected > 0.03
+    assert fitted.probability(x, 0.9).mean() == pytest.approx(right.mean(), abs=0.02)
+    assert fitted.probability(x).mean() < right.mean() - 0.03
+
+
+def test_fitting_needs_images_with_and_without_the_part():
+    x, right, present = bench(0.5, 200, 3)
+    with pytest.raises(ValueError, match="with the part and without it"):
+        Calibration.fit(x[present], right[present], present[present], NAMES)
+
+
+def test_the_expected_calibration_error_measures_the_gap():
+    rng = np.random.default_rng(4)
+    stated = rng.random(50000)
+    error, rows = reliability(stated, rng.random(50000) < stated)
+    assert error < 0.01 and len(rows) == 10
+    error, _ = reliability(stated, rng.random(50000) < stated * 0.8)  # 20 % overstated
+    assert error == pytest.approx(0.1, abs=0.01)
+    # weights re-weigh: doubling the weight of the upper half makes its bins count twice
+    weights = np.where(stated > 0.5, 2.0, 1.0)
+    _, rows = reliability(stated, stated > 0.3, weights)
+    assert rows[-1][0] == pytest.approx(2 * rows[0][0], rel=0.1)
+
+
 def calibration():
-    x, y = synthetic([2.0, -1.0, 0.3], -0.5, n=500)
-    return Calibration.fit(x, y, NAMES, provenance={"parts": ["a", "b"], "estimates": 500})
+    x, right, present = bench(0.5, 500, 5)
+    return Calibration.fit(x, right, present, NAMES, provenance={"parts": ["a", "b"], "estimates": 500})
 
 
 def test_the_file_round_trips(tmp_path):
@@ -50,24 +99,31 @@ def test_the_file_round_trips(tmp_path):
     model.save(tmp_path / "c.yaml", header="a test")
     loaded = Calibration.load(tmp_path / "c.yaml")
     assert loaded.features == NAMES and loaded.provenance == {"parts": ["a", "b"], "estimates": 500}
-    np.testing.assert_allclose(loaded.weights, model.weights, rtol=1e-8)
+    np.testing.assert_allclose(loaded.right.weights, model.right.weights, rtol=1e-8)
+    assert loaded.prior == pytest.approx(model.prior)
     x = np.array([[0.7, 0.85, 0.3], [0.3, 0.9, 0.8]])
-    np.testing.assert_allclose(loaded.probability(x), model.probability(x), rtol=1e-7)
+    for prior in (None, 0.2, 1.0):
+        np.testing.assert_allclose(loaded.probability(x, prior), model.probability(x, prior), rtol=1e-7)
     assert (tmp_path / "c.yaml").read_text().startswith("# a test\n")
 
 
 @pytest.mark.parametrize("change, message", [
-    (lambda d: d["weights"].__setitem__(0, d["weights"][0] + 0.5), "checksum does not match"),
+    (lambda d: d["right"]["weights"].__setitem__(0, d["right"]["weights"][0] + 0.5), "checksum does not match"),
+    (lambda d: d["present"].__setitem__("bias", d["present"]["bias"] - 1.0), "checksum does not match"),
+    (lambda d: d.__setitem__("prior", 0.9), "checksum does not match"),
     (lambda d: d["provenance"].__setitem__("parts", ["a"]), "checksum does not match"),
-    (lambda d: d.pop("scale"), "missing scale"),
+    (lambda d: d.pop("prior"), "missing prior"),
+    (lambda d: d["present"].pop("scale"), "present: missing scale"),
     (lambda d: d.__setitem__("comment", 1), "unknown comment"),
-    (lambda d: d.__setitem__("format", 2), "format 2"),
+    (lambda d: d.__setitem__("format", 1), "format 1, this version reads format 2"),
     (lambda d: d["features"].__setitem__(1, "colour"), "unknown feature.*colour"),
-    (lambda d: d["weights"].pop(), "2 weights for 3 features"),
-    (lambda d: d["scale"].__setitem__(0, -1.0), "scale must be positive"),
-    (lambda d: d["mean"].__setitem__(0, float("nan")), "mean must be finite"),
-    (lambda d: d.__setitem__("bias", "high"), "bias must be a finite number"),
-    (lambda d: d.__setitem__("weights", 3.0), "weights must be a list"),
+    (lambda d: d["right"]["weights"].pop(), "right: 3 means, 3 scales, 2 weights"),
+    (lambda d: d["features"].pop(), "present: 3 weights for 2 features"),
+    (lambda d: d["right"]["scale"].__setitem__(0, -1.0), "right: scale must be positive"),
+    (lambda d: d["right"]["mean"].__setitem__(0, float("nan")), "mean must be finite"),
+    (lambda d: d["right"].__setitem__("bias", "high"), "bias must be a finite number"),
+    (lambda d: d["present"].__setitem__("weights", 3.0), "weights must be a list"),
+    (lambda d: d.__setitem__("prior", 1.0), "prior must be a number strictly between 0 and 1"),
 ])
 def test_a_tampered_or_malformed_file_is_refused_naming_the_problem(tmp_path, change, message):
     path = tmp_path / "c.yaml"
@@ -94,13 +150,15 @@ def test_the_shipped_calibration_loads_with_its_provenance():
     shipped = load_calibration("")
     assert shipped == Calibration.load(shipped_path())
     assert {"parts", "estimates", "right", "version", "commit"} <= set(shipped.provenance)
-    assert set(shipped.features) <= set(FEATURES)
+    assert set(shipped.features) <= set(FEATURES) and 0.0 < shipped.prior < 1.0
     assert EstimatorParams().pose.confidence_file == ""
 
 
-def estimate(score, **changes):
+def estimate(score, confirmed=None, explained=None, significance=0.9999, **changes):
     values = dict(found=True, R=np.eye(3), t=np.array([0, 0, 0.5]), score=score, error_ratio=0.3, view_index=0,
-                  n_image_segments=40, n_matched=10, n_nearest=8, shares=Shares(score, score, 0.9999),
+                  n_image_segments=40, n_matched=10, n_nearest=8,
+                  shares=Shares(score if confirmed is None else confirmed, score if explained is None else explained,
+                                significance),
                   size_pixels=200.0, model_length_pixels=1500.0)
     return Estimate(**{**values, **changes})
 
@@ -116,3 +174,40 @@ def test_the_shipped_confidence_rises_with_the_score():
     shipped = load_calibration("")
     low, high = shipped.confidence(estimate(0.3)), shipped.confidence(estimate(0.95))
     assert 0.0 <= low < high <= 1.0
+
+
+def judged(e: Estimate, p=None) -> bool:
+    """Whether the estimator would report ``e`` under pose parameters ``p`` (default: the
+    defaults), its confidence from the shipped calibration as the estimator computes it."""
+    p = p or EstimatorParams().pose
+    e.confidence = load_calibration("").confidence(e, p.prior)
+    return is_found(e, p)
+
+
+def test_the_found_rule_reports_by_the_confidence_above_a_floor_on_the_score():
+    today = EstimatorParams().with_flat({"pose.min_score": 0.6, "pose.min_confidence": 0.0}).pose
+    # a clear pose, found by either rule
+    assert judged(estimate(0.9, 0.9, 0.9)) and judged(estimate(0.9, 0.9, 0.9), today)
+    # below 0.6 but well confirmed (a partly hidden part): found now, not before
+    hidden = estimate(0.58, confirmed=0.7, explained=0.8, significance=0.99999)
+    assert judged(hidden) and not judged(hidden, today)
+    # a small pose barely confirmed, scoring 0.62 (a chance fit on clutter): found before, not now
+    chance = estimate(0.62, confirmed=0.5, explained=0.7, significance=0.9, size_pixels=60.0,
+                      model_length_pixels=300.0)
+    assert judged(chance, today) and not judged(chance)
+    # below the score's floor nothing is found, however confident
+    floor = EstimatorParams().pose.min_score
+    low = estimate(floor - 0.01, confidence=1.0)
+    assert not is_found(low, EstimatorParams().pose) and is_found(estimate(floor, confidence=1.0),
+                                                                    EstimatorParams().pose)
+
+
+def test_pose_prior_moves_an_estimates_confidence_with_how_often_the_part_is_in_view():
+    shipped, e = load_calibration(""), estimate(0.58, confirmed=0.6, explained=0.8, significance=0.99)
+    never, rare, fit_mix, often, always = (shipped.confidence(e, prior) for prior in (0.0, 0.1, 0.5, 0.9, 1.0))
+    assert never == 0.0 < rare < fit_mix < often < always < 1.0
+    assert fit_mix == pytest.approx(shipped.confidence(e, shipped.prior))
+    # the same estimate, not worth reporting where the part is rarely in view, is where it always is
+    params = EstimatorParams().with_flat({"pose.min_confidence": 0.1})
+    assert not judged(estimate(0.58, 0.6, 0.8, 0.99), params.with_flat({"pose.prior": 0.1}).pose)
+    assert judged(estimate(0.58, 0.6, 0.8, 0.99), params.with_flat({"pose.prior": 1.0}).pose)

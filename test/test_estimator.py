@@ -115,7 +115,7 @@ def test_min_confidence_decides_found_and_the_confidence_is_reported_either_way(
 
 
 def test_a_bad_calibration_file_is_refused_before_it_is_used(estimator, tmp_path):
-    (tmp_path / "c.yaml").write_text("format: 1\n")
+    (tmp_path / "c.yaml").write_text("format: 2\n")
     with pytest.raises(ValueError, match="calibration file .*c.yaml: missing"):
         estimator.params = estimator.params.with_flat({"pose.confidence_file": str(tmp_path / "c.yaml")})
     assert estimator.params.pose.confidence_file == ""

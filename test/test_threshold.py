@@ -26,4 +26,4 @@ def test_min_score_is_written_even_at_its_default(tmp_path):
 
     write_params(tmp_path / "part.yaml", EstimatorParams(), "brepose-threshold")
     assert EstimatorParams.load(tmp_path / "part.yaml") == EstimatorParams()
-    assert "min_score: 0.6" in (tmp_path / "part.yaml").read_text()
+    assert f"min_score: {EstimatorParams().pose.min_score}" in (tmp_path / "part.yaml").read_text()

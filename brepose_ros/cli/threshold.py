@@ -6,8 +6,9 @@ translation < 5 % of the diameter), and N clean images of each part of --others,
 detection is wrong. The part's estimator runs on all of them; for each threshold on the score,
 precision = correct detections / all detections and recall = correct detections / images of
 the part. Prints the table, the same for the confidence (pose.min_confidence), and the
-lowest min_score whose precision reaches --precision, and writes that min_score into an
-estimator parameter file for brepose-estimate --params and the node.
+lowest min_score whose precision reaches --precision, and writes that min_score (with
+pose.min_confidence 0: the score alone decides, as measured) into an estimator parameter
+file for brepose-estimate --params and the node.
 """
 from __future__ import annotations
 
@@ -52,7 +53,7 @@ def parse_args(argv=None):
     p.add_argument("--seed", type=non_negative_int, default=0, help="random seed of the scenes (default 0)")
     p.add_argument("--precision", type=fraction, default=1.0,
                    help="precision min_score must reach (default 1: no wrong detection among the renders)")
-    p.add_argument("--params", help="estimator YAML to start from (its min_score is replaced)")
+    p.add_argument("--params", help="estimator YAML to start from (its min_score and min_confidence are replaced)")
     p.add_argument("-o", "--output", type=Path, help="estimator YAML to write with the chosen min_score")
     p.add_argument("--scenes", type=Path, help="folder to keep the rendered scenes in (default: a temporary one)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
@@ -65,7 +66,8 @@ def main(argv=None) -> int:
     def job() -> int:
         base = EstimatorParams.load(args.params) if args.params else EstimatorParams()
         # every pose scored, found or not: the threshold is what this run chooses
-        estimator = Estimator(AspectGraph.load(args.graph), base.with_flat({"pose.min_score": 0.0}))
+        estimator = Estimator(AspectGraph.load(args.graph),
+                              base.with_flat({"pose.min_score": 0.0, "pose.min_confidence": 0.0}))
         with tempfile.TemporaryDirectory() as tmp:
             folder = args.scenes or Path(tmp)
             folder.mkdir(parents=True, exist_ok=True)
@@ -106,7 +108,7 @@ def main(argv=None) -> int:
               f"({percent(right, n_part)}), {wrong} wrong detections")
         if args.output:
             command = " ".join(["brepose-threshold", *(sys.argv[1:] if argv is None else argv)])
-            write_params(args.output, base.with_flat({"pose.min_score": chosen}), command)
+            write_params(args.output, base.with_flat({"pose.min_score": chosen, "pose.min_confidence": 0.0}), command)
             print(f"wrote {args.output}")
         return 0
 

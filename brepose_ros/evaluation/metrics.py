@@ -294,6 +294,26 @@ def precision_recall(scores, correct, n_positive: int, thresholds) -> tuple[np.n
     return precision, right / max(n_positive, 1), detections
 
 
+def reliability(probability, correct, weights=None, bins: int = 10) -> tuple[float, list[tuple[float, float, float]]]:
+    """How far stated probabilities are from the share right: the expected calibration
+    error (the weighted mean, over ``bins`` equal-width bins of ``probability``, of
+    |mean probability - share right|) and per non-empty bin (weight, mean probability,
+    share right). ``weights`` (default 1 each) re-weigh estimates, e.g. to another share of
+    images holding the part than the bench's."""
+    probability, correct = np.asarray(probability, float), np.asarray(correct, bool)
+    weights = np.ones(len(probability)) if weights is None else np.asarray(weights, float)
+    index = np.clip((probability * bins).astype(int), 0, bins - 1)
+    rows, error = [], 0.0
+    for b in range(bins):
+        w = weights[index == b]
+        if w.sum() <= 0:
+            continue
+        stated, right = np.average(probability[index == b], weights=w), np.average(correct[index == b], weights=w)
+        rows.append((float(w.sum()), float(stated), float(right)))
+        error += w.sum() * abs(stated - right)
+    return float(error / max(weights.sum(), 1e-12)), rows
+
+
 def calibrate_min_score(scores, correct, target_precision: float = 0.95) -> float | None:
     """The lowest threshold on the score whose detections are right at least
     ``target_precision`` of the time: the ``pose.min_score`` that keeps the reported poses

@@ -3,12 +3,20 @@ estimator knows at the final pose.
 
 The score (``scoring``) ranks poses of one image, but it is not a probability across
 images: a pose reported at 0.6 was right 43 % of the time on the leave-out parts
-(docs/results/confidence.md). A logistic model on a few numbers the estimate already has
-(``FEATURES``: the score, its shares, the error ratio, the twin margin, the projected
-size, the image's line count) turns them into one: ``Calibration.confidence``.
+(docs/results/confidence.md). Two logistic models on a few numbers the estimate already
+has (``FEATURES``: the score, its shares, the error ratio, the twin margin, ...) turn them
+into one, ``Calibration.confidence``:
 
-Its weights are learned, not hand-set (``Calibration.fit``: an L2-regularised logistic
-regression on standardised features, scipy's L-BFGS), on estimates whose correctness is
+    P(right) = P(the part is in view | x) * P(the pose is right | x, the part is in view)
+
+The first factor depends on how often the part is in view at all (the prior), which a
+cell knows and the fitting bench cannot: it was fitted at the bench's mix
+(``Calibration.prior``) and is moved to the cell's ``pose.prior`` by Bayes' rule (its
+log-odds shifted by the difference of the priors' log-odds). At prior 1 the confidence
+is the second factor alone.
+
+The weights are learned, not hand-set (``Logistic.fit``: L2-regularised logistic
+regressions on standardised features, scipy's L-BFGS), on estimates whose correctness is
 known (bench/confidence.py ``--fit``: the tuning parts' scenes with and without the part),
 and shipped with their provenance in ``brepose_ros/confidence.yaml``, which the estimator
 loads by default (``pose.confidence_file`` names another). The file carries a checksum of
@@ -31,8 +39,8 @@ import yaml
 if TYPE_CHECKING:
     from .estimator import Estimate
 
-#: the calibration file's layout; a file of another format is refused
-FORMAT = 1
+#: the calibration file's layout; a file of another format is refused (format 1: one model, no prior)
+FORMAT = 2
 #: the shipped calibration, inside the package so that every kind of install finds it
 SHIPPED = "confidence.yaml"
 
@@ -59,58 +67,48 @@ def features(estimate: "Estimate") -> dict[str, float]:
     return {name: float(get(estimate)) for name, get in FEATURES.items()}
 
 
-@dataclass(frozen=True)
-class Calibration:
-    """A logistic model: confidence = 1 / (1 + exp(-(bias + weights . (x - mean) / scale)))
-    over the named ``features`` x, with where and on what it was fitted (``provenance``)."""
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
-    features: tuple[str, ...]
+
+@dataclass(frozen=True)
+class Logistic:
+    """P = 1 / (1 + exp(-(bias + weights . (x - mean) / scale))) over rows of raw features x."""
+
     mean: tuple[float, ...]
     scale: tuple[float, ...]
     weights: tuple[float, ...]
     bias: float
-    provenance: dict
 
     def __post_init__(self):
-        unknown = [f for f in self.features if f not in FEATURES]
-        if unknown:
-            raise ValueError(f"unknown feature(s) {', '.join(unknown)} (known: {', '.join(FEATURES)})")
-        if not self.features:
-            raise ValueError("no features")
         for name in ("mean", "scale", "weights"):
             values = getattr(self, name)
-            if len(values) != len(self.features):
-                raise ValueError(f"{len(values)} {name} for {len(self.features)} features")
-            if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+            if not all(_finite(v) for v in values):
                 raise ValueError(f"{name} must be finite numbers, got {list(values)}")
+        if len({len(self.mean), len(self.scale), len(self.weights)}) != 1:
+            raise ValueError(f"{len(self.mean)} means, {len(self.scale)} scales, {len(self.weights)} weights")
         if not all(s > 0 for s in self.scale):
             raise ValueError(f"scale must be positive, got {list(self.scale)}")
-        if not (isinstance(self.bias, (int, float)) and math.isfinite(self.bias)):
+        if not _finite(self.bias):
             raise ValueError(f"bias must be a finite number, got {self.bias!r}")
 
     def logit(self, x: np.ndarray) -> np.ndarray:
-        """The model's log-odds of rows of raw features (N, F) in ``features`` order."""
+        """The model's log-odds of rows of raw features (N, F)."""
         z = (np.asarray(x, float) - np.asarray(self.mean)) / np.asarray(self.scale)
         return self.bias + z @ np.asarray(self.weights)
 
     def probability(self, x: np.ndarray) -> np.ndarray:
         return 1.0 / (1.0 + np.exp(-self.logit(x)))
 
-    def confidence(self, estimate: "Estimate") -> float:
-        """The probability that ``estimate``'s pose is right, in [0, 1]."""
-        values = features(estimate)
-        return float(self.probability(np.array([[values[f] for f in self.features]]))[0])
-
     @classmethod
-    def fit(cls, x: np.ndarray, correct: np.ndarray, names: tuple[str, ...], l2: float = 0.01,
-            provenance: dict | None = None) -> "Calibration":
-        """Logistic regression of ``correct`` (N,) on the raw features ``x`` (N, F) named
-        ``names``, standardised; ``l2`` times the squared weights (not the bias) is added to
-        the mean log-loss, so that a feature that separates the few training estimates
-        perfectly does not get an infinite weight."""
+    def fit(cls, x: np.ndarray, y: np.ndarray, l2: float = 0.01) -> "Logistic":
+        """Logistic regression of ``y`` (N,) on the raw features ``x`` (N, F), standardised;
+        ``l2`` times the squared weights (not the bias) is added to the mean log-loss, so
+        that a feature that separates the few training estimates perfectly does not get an
+        infinite weight."""
         from scipy.optimize import minimize
 
-        x, y = np.asarray(x, float), np.asarray(correct, float)
+        x, y = np.asarray(x, float), np.asarray(y, float)
         mean, scale = x.mean(axis=0), x.std(axis=0)
         scale[scale < 1e-9] = 1.0  # a constant feature: its weight stays 0 under the L2 term
         z = (x - mean) / scale
@@ -125,12 +123,100 @@ class Calibration:
             return value, np.concatenate([[residual.sum()], z.T @ residual + 2 * l2 * w[1:]])
 
         w = minimize(loss, np.zeros(x.shape[1] + 1), jac=True, method="L-BFGS-B").x
-        return cls(tuple(names), tuple(map(float, mean)), tuple(map(float, scale)), tuple(map(float, w[1:])),
-                   float(w[0]), dict(provenance or {}))
+        return cls(tuple(map(float, mean)), tuple(map(float, scale)), tuple(map(float, w[1:])), float(w[0]))
 
     def numbers(self) -> dict:
-        return {"features": list(self.features), "mean": list(self.mean), "scale": list(self.scale),
-                "weights": list(self.weights), "bias": self.bias}
+        return {"mean": list(self.mean), "scale": list(self.scale), "weights": list(self.weights), "bias": self.bias}
+
+    def rounded(self) -> "Logistic":
+        """The same model with its numbers as the file keeps them (9 significant digits)."""
+        def r(values):
+            return tuple(float(f"{v:.9g}") for v in values)
+
+        return Logistic(r(self.mean), r(self.scale), r(self.weights), r([self.bias])[0])
+
+    @classmethod
+    def from_dict(cls, data, name: str) -> "Logistic":
+        if not isinstance(data, dict):
+            raise ValueError(f"{name} must be a mapping")
+        expected = {"mean", "scale", "weights", "bias"}
+        missing, extra = expected - set(data), set(data) - expected
+        if missing or extra:
+            raise ValueError(f"{name}: " + ", ".join(([f"missing {', '.join(sorted(missing))}"] if missing else []) +
+                                                   ([f"unknown {', '.join(sorted(extra))}"] if extra else [])))
+        for key in ("mean", "scale", "weights"):
+            if not isinstance(data[key], list):
+                raise ValueError(f"{name}: {key} must be a list, got {data[key]!r}")
+        try:
+            return cls(tuple(data["mean"]), tuple(data["scale"]), tuple(data["weights"]), data["bias"])
+        except ValueError as exc:
+            raise ValueError(f"{name}: {exc}") from None
+
+
+def shifted_log_odds(prior: float, fitted_prior: float) -> float:
+    """What Bayes' rule adds to the log-odds that the part is in view when it is in view in
+    a share ``prior`` of the images instead of the fit's ``fitted_prior`` (inf at prior 1,
+    -inf at 0)."""
+    if prior >= 1.0:
+        return math.inf
+    if prior <= 0.0:
+        return -math.inf
+    return math.log(prior / (1.0 - prior)) - math.log(fitted_prior / (1.0 - fitted_prior))
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """The confidence (module doc): ``present``, whether the part is in view, fitted on
+    every estimate at the share ``prior`` of images holding the part; ``right``, whether
+    the pose is right, fitted on the estimates of images holding it; both over the named
+    ``features``; with where and on what they were fitted (``provenance``)."""
+
+    features: tuple[str, ...]
+    present: Logistic
+    right: Logistic
+    prior: float
+    provenance: dict
+
+    def __post_init__(self):
+        unknown = [f for f in self.features if f not in FEATURES]
+        if unknown:
+            raise ValueError(f"unknown feature(s) {', '.join(unknown)} (known: {', '.join(FEATURES)})")
+        if not self.features:
+            raise ValueError("no features")
+        for name in ("present", "right"):
+            if len(getattr(self, name).weights) != len(self.features):
+                raise ValueError(f"{name}: {len(getattr(self, name).weights)} weights for {len(self.features)} "
+                                 "features")
+        if not (_finite(self.prior) and 0.0 < self.prior < 1.0):
+            raise ValueError(f"prior must be a number strictly between 0 and 1, got {self.prior!r}")
+
+    def probability(self, x: np.ndarray, prior: float | None = None) -> np.ndarray:
+        """The confidence of rows of raw features (N, F) in ``features`` order where a share
+        ``prior`` of the images hold the part (None: the fit's own mix)."""
+        shift = 0.0 if prior is None else shifted_log_odds(prior, self.prior)
+        with np.errstate(over="ignore"):  # exp(inf) at prior 0 gives the right limit, 0
+            present = 1.0 / (1.0 + np.exp(-(self.present.logit(x) + shift)))
+        return present * self.right.probability(x)
+
+    def confidence(self, estimate: "Estimate", prior: float | None = None) -> float:
+        """The probability that ``estimate``'s pose is right, in [0, 1] (``probability``)."""
+        values = features(estimate)
+        return float(self.probability(np.array([[values[f] for f in self.features]]), prior)[0])
+
+    @classmethod
+    def fit(cls, x: np.ndarray, correct: np.ndarray, present: np.ndarray, names: tuple[str, ...],
+            l2: float = 0.01, provenance: dict | None = None) -> "Calibration":
+        """Both models on raw features ``x`` (N, F) named ``names``: ``present`` (N,) whether
+        each estimate's image holds the part, ``correct`` (N,) whether its pose is right."""
+        x, correct, present = np.asarray(x, float), np.asarray(correct, bool), np.asarray(present, bool)
+        if not present.any() or present.all():
+            raise ValueError("fitting needs estimates of images with the part and without it")
+        return cls(tuple(names), Logistic.fit(x, present, l2), Logistic.fit(x[present], correct[present], l2),
+                   float(present.mean()), dict(provenance or {}))
+
+    def numbers(self) -> dict:
+        return {"features": list(self.features), "present": self.present.numbers(), "right": self.right.numbers(),
+                "prior": self.prior}
 
     def checksum(self) -> str:
         """sha256 of the numbers and the provenance, as written (rounded to the file's digits)."""
@@ -139,10 +225,7 @@ class Calibration:
 
     def rounded(self) -> "Calibration":
         """The same model with its numbers as the file keeps them (9 significant digits)."""
-        def r(values):
-            return tuple(float(f"{v:.9g}") for v in values)
-
-        return Calibration(self.features, r(self.mean), r(self.scale), r(self.weights), r([self.bias])[0],
+        return Calibration(self.features, self.present.rounded(), self.right.rounded(), float(f"{self.prior:.9g}"),
                            self.provenance)
 
     def save(self, path: str | Path, header: str = "") -> None:
@@ -172,20 +255,20 @@ class Calibration:
     def from_dict(cls, data) -> "Calibration":
         if not isinstance(data, dict):
             raise ValueError(f"must be a mapping, got {type(data).__name__}")
-        expected = {"format", "features", "mean", "scale", "weights", "bias", "provenance", "checksum"}
+        if "format" in data and data["format"] != FORMAT:
+            raise ValueError(f"format {data['format']!r}, this version reads format {FORMAT} "
+                             "(fit it again: python bench/confidence.py --fit FILE)")
+        expected = {"format", "features", "present", "right", "prior", "provenance", "checksum"}
         missing, extra = expected - set(data), set(data) - expected
         if missing or extra:
             raise ValueError(", ".join(([f"missing {', '.join(sorted(missing))}"] if missing else []) +
                                        ([f"unknown {', '.join(sorted(extra))}"] if extra else [])))
-        if data["format"] != FORMAT:
-            raise ValueError(f"format {data['format']!r}, this version reads format {FORMAT}")
-        for name in ("features", "mean", "scale", "weights"):
-            if not isinstance(data[name], list):
-                raise ValueError(f"{name} must be a list, got {data[name]!r}")
+        if not isinstance(data["features"], list):
+            raise ValueError(f"features must be a list, got {data['features']!r}")
         if not isinstance(data["provenance"], dict):
             raise ValueError("provenance must be a mapping")
-        model = cls(tuple(data["features"]), tuple(data["mean"]), tuple(data["scale"]), tuple(data["weights"]),
-                    data["bias"], data["provenance"])
+        model = cls(tuple(data["features"]), Logistic.from_dict(data["present"], "present"),
+                    Logistic.from_dict(data["right"], "right"), data["prior"], data["provenance"])
         if model.checksum() != data["checksum"]:
             raise ValueError("checksum does not match its numbers: edited or damaged after fitting "
                              "(fit it again: python bench/confidence.py --fit FILE)")

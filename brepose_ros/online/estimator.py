@@ -24,8 +24,9 @@ Each stage lives in its own module; this one only wires them:
 6. ``symmetry``: the pose against its twins under the part's near symmetries, on the
    edges that tell them apart; ambiguous when the image cannot decide
 7. ``scoring``: the error ratio and the score's shares at the pose; ``confidence``: the
-   probability that the pose is right; found if the score passes ``pose.min_score`` and the
-   confidence ``pose.min_confidence``
+   probability that the pose is right where the part is in view in a share ``pose.prior``
+   of the images; found (``is_found``) if the score passes its floor ``pose.min_score`` and
+   the confidence ``pose.min_confidence``
 
 ``estimate(..., paper_only=True)`` stops after step 3, as the seed paper does (section 6):
 the bipartite matching's best-covered hypothesis over all regions, its view turned into a
@@ -49,7 +50,7 @@ import numpy as np
 
 from ..aspect_graph import AspectGraph
 from ..camera import Camera
-from ..params import EstimatorParams, SearchParams
+from ..params import EstimatorParams, PoseParams, SearchParams
 from .frame import Frame
 from .hypotheses import TetradHypotheses, best_covered, best_per_region
 from .larger import larger_pose
@@ -219,8 +220,8 @@ class Estimator:
                             timings=timings, matched_view=int(best.hypothesis.view), symmetry_margin=margin,
                             ambiguous=margin is not None and margin < p.pose.twin_margin, shares=shares,
                             size_pixels=size, model_length_pixels=length)
-        estimate.confidence = calibration.confidence(estimate)
-        if best.score >= p.pose.min_score and estimate.confidence >= p.pose.min_confidence:
+        estimate.confidence = calibration.confidence(estimate, p.pose.prior)
+        if is_found(estimate, p.pose):
             estimate.found, estimate.R, estimate.t, estimate.covariance = True, best.R, best.t, best.covariance
         return estimate
 
@@ -332,6 +333,12 @@ class Estimator:
                         view_index=g.nearest_view(R, t), n_image_segments=not_found.n_image_segments,
                         n_matched=pairs.n_matched, n_nearest=pairs.n_nearest, image_segments=pairs.image_segments,
                         model_segments=pairs.model_segments, timings=timings, matched_view=best.view)
+
+
+def is_found(estimate: Estimate, p: PoseParams) -> bool:
+    """The found rule: the confidence decides (docs/results/confidence.md), above a floor on
+    the score that keeps a pose the verification barely confirms from being reported."""
+    return estimate.score >= p.min_score and estimate.confidence >= p.min_confidence
 
 
 def template_search(graph: AspectGraph, p: SearchParams) -> TemplateSearch | None:
