@@ -282,6 +282,7 @@ def warm_up() -> None:
     align_on_edges_kernel(R, t, np.array([[2.0]]), np.array([[0.0, 0.0, -1.0]]), np.zeros(3), np.array([0, 4]), square,
                           np.ones(4), np.array([100.0, 100.0, 2.0, 2.0]), np.zeros(8), np.zeros((8, 4, 4), np.int32),
                           np.zeros((1, 2)), 3.0, 12, 3, np.zeros((1, 6, 6)), np.zeros(1))
+    nearest_views_kernel(R, t, np.eye(3), np.zeros(3), np.zeros(1, np.int64))
     near, row_starts, columns = np.zeros((1, 8, 6, 6), np.uint8), np.zeros(5, np.int64), np.zeros(0, np.int64)
     pose_evidence_kernel(segments * 3.0, np.zeros(2, np.int64), np.array([0, 2]), 1.0, near,
                          np.zeros((1, 8, 6, 6), np.float32), row_starts, columns, np.ones(1), 1.0, 0.2, 2, 1,
@@ -554,6 +555,14 @@ def _nearest_view(R: np.ndarray, t: np.ndarray, view_directions: np.ndarray, mod
         if product > most:
             view, most = v, product
     return view
+
+@njit(nogil=True, cache=True)
+def nearest_views_kernel(R: np.ndarray, t: np.ndarray, view_directions: np.ndarray, model_center: np.ndarray,
+                         out: np.ndarray) -> None:
+    """``AspectGraph.nearest_views`` of B poses R (B, 3, 3), t (B, 3) into ``out`` (B,)."""
+    for b in range(len(R)):
+        out[b] = _nearest_view(R[b], t[b], view_directions, model_center)
+
 
 @njit(nogil=True, cache=True)
 def project_point(x: float, y: float, z: float, intrinsics: np.ndarray, distortion: np.ndarray) -> tuple[float, float]:
