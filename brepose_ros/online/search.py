@@ -417,16 +417,18 @@ class TemplateSearch:
         # fit a part's position, and the best by the coarse score is often not the right one
         step = 2 * np.pi / p.angles
         kept: list[int] = []
-        for t in order:
+        of_view: dict[int, list[int]] = {}  # the kept templates of each view: only those can be duplicates
+        for t, view in zip(order.tolist(), c.view[order].tolist()):
             if len(kept) == count:
                 break
-            if not any(c.view[u] == c.view[t] and abs(np.angle(np.exp(1j * (c.angle[u] - c.angle[t])))) <= step
+            if not any(abs(np.angle(np.exp(1j * (c.angle[u] - c.angle[t])))) <= step
                        and np.hypot(center_x[u] - center_x[t], center_y[u] - center_y[t])
-                       < p.distinct_fraction * c.size[t] for u in kept):
+                       < p.distinct_fraction * c.size[t] for u in of_view.get(view, ())):
                 kept.append(t)
+                of_view.setdefault(view, []).append(t)
+        centers_n = frame.camera.undistort(np.stack([center_x[kept], center_y[kept]], axis=1))
         out = []
-        for t in kept:
-            center_n = frame.camera.undistort(np.array([[center_x[t], center_y[t]]]))[0]
+        for t, center_n in zip(kept, centers_n):
             scale = c.size[t] / self.library.diameter / frame.camera.focal  # 1 / depth
             out.append(Hypothesis(_seed_region(virtual_alignment(center_n)), int(c.view[t]), float(scale),
                                   float(c.angle[t]), np.zeros(2), float(c.score[t])))
