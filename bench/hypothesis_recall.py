@@ -3,7 +3,7 @@ the view climb (``Estimator.candidates``: hypotheses refined and scored) lies ne
 pose, per generator setting, with the final success and the time per image.
 
     python bench/hypothesis_recall.py [--n 12] [--parts sharp_bracket ...] [--conditions clean ...]
-        [--variant LABEL[:group.key=value,...] ...]
+        [--variant LABEL[:group.key=value,...] ...] [--known-size RATIO]
 
 A variant is a label and flat parameter overrides; a label naming a generator setting
 (``tetrad``, ``search``, ``both``, ``seeded+tetrad``, ...) sets ``search.generators``.
@@ -15,10 +15,14 @@ exists), first (the best-scored candidate is near), success (the estimator's fin
 climb, polish, twin check, ``pose.min_score``; CONVENTIONS.md success), and median
 milliseconds of the candidates (``gen ms``) and of the whole image after edges (``all ms``).
 Scenes are those of bench/accuracy.py (varied look, seed 100, cached in data/bench).
+``--known-size RATIO`` sets every variant's search sizes, image by image, to the part's true
+projected diameter divided and multiplied by RATIO (``search.min_size_fraction`` /
+``max_size_fraction``): a user who knows the working distance that well.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -84,6 +88,14 @@ def measure(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> di
             "stages": " ".join(f"{k} {1000 * v:.0f}" for k, v in stages.items())}
 
 
+def known_size(params: EstimatorParams, graph, camera, entry, ratio: float) -> EstimatorParams:
+    """``params`` with the search's sizes within ``ratio`` of the part's projected diameter in this image."""
+    size = camera.focal * graph.model_diameter / np.linalg.norm(entry.R @ graph.model_center + entry.t)
+    low = size / ratio / np.hypot(camera.width, camera.height)
+    return dataclasses.replace(params, search=dataclasses.replace(params.search, min_size_fraction=low,
+                                                                  max_size_fraction=low * ratio * ratio))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--n", type=int, default=12)
@@ -93,6 +105,8 @@ def main(argv=None) -> int:
     parser.add_argument("--variant", nargs="*", default=["tetrad", "search", "both"])
     parser.add_argument("--span", type=float, nargs=2, default=SPAN, metavar=("LOW", "HIGH"),
                         help="the part's projected size, share of the image's smaller side (bench/accuracy.py's)")
+    parser.add_argument("--known-size", type=float, default=0.0, metavar="RATIO",
+                        help="search only sizes within this ratio of the part's true size (0: the parameters')")
     parser.add_argument("--verbose", action="store_true", help="a line per image")
     args = parser.parse_args(argv)
     variants = [variant_params(spec) for spec in args.variant]
@@ -117,6 +131,9 @@ def main(argv=None) -> int:
                 turn = len(results[estimators[0][0]])
                 order = estimators[turn % len(estimators):] + estimators[:turn % len(estimators)]
                 for label, estimator in order:
+                    if args.known_size:
+                        estimator.params = known_size(dict(variants)[label], graph, cached.camera, entry,
+                                                      args.known_size)
                     r = measure(estimator, frame, entry, model)
                     results[label].append(r)
                     if args.verbose:
