@@ -145,7 +145,7 @@ def test_maps_built_per_bin_on_threads_equal_those_built_on_first_use():
     prepared, lazy = scoring.EdgeEvidence(*stage), scoring.EdgeEvidence(*stage)
     pool = WorkerPool(2)
     try:
-        prepared.adopt(pool.map(lambda job: job(), prepared.bin_jobs((2.0, 3.0))), (2.0, 3.0))
+        prepared.adopt(pool.map(lambda job: job(), prepared.bin_jobs((2.0, 3.0))))
     finally:
         pool.close()
     for ours, theirs in zip(prepared.nearest_like(), lazy.nearest_like()):
@@ -153,6 +153,8 @@ def test_maps_built_per_bin_on_threads_equal_those_built_on_first_use():
     for tolerance in (2.0, 3.0):
         assert np.array_equal(prepared.near_like(tolerance), lazy.near_like(tolerance))
         assert np.array_equal(prepared.chance(tolerance), lazy.chance(tolerance))
+    for ours, theirs in zip(prepared.stacked((2.0, 3.0)), lazy.stacked((2.0, 3.0))):
+        assert np.array_equal(ours, theirs)
 
 
 def edge_stage(gray):

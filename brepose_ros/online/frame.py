@@ -41,10 +41,10 @@ class Frame:
         image before the refinement's threads would each wait for them."""
         pixels = edge_pixels(image, params)
         evidence = _evidence(pixels)
-        segments, refine_segments, *per_bin = pool.map(lambda job: job(), [
+        segments, refine_segments, *nearest = pool.map(lambda job: job(), [
             lambda: line_segments(pixels, params), lambda: line_segments(pixels, refinement_params(params)),
             *evidence.bin_jobs(tolerances)])
-        evidence.adopt(per_bin, tolerances)
+        evidence.adopt(nearest)
         edges = dataclasses.replace(pixels, segments=segments, refine_segments=refine_segments)
         return edges, cls._with(edges, camera, evidence)
 

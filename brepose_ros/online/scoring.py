@@ -263,27 +263,38 @@ class EdgeEvidence:
         self._stacked = {}  # tolerances -> stacked()
         self._nearest_like: tuple[np.ndarray, np.ndarray] | None = None  # nearest_like(), built on first use
         self._nearest_lock = threading.Lock()  # the refinement's threads share one image's evidence
+        self._filling: tuple = ()  # bin_jobs' tolerances and the maps its jobs fill
 
-    def bin_jobs(self, tolerances: tuple[float, ...] = ()) -> list[Callable[[], tuple]]:
+    def bin_jobs(self, tolerances: tuple[float, ...] = ()) -> list[Callable[[], np.ndarray | None]]:
         """One job per direction bin building its piece of ``nearest_like`` and of ``near_like``
         and ``chance`` at each of ``tolerances``: OpenCV calls, which release the GIL, so that
-        the bins run on several threads (``Frame.detect``); ``adopt`` their results. The
-        same maps as built on first use, the longest job an eighth of them."""
-        return [partial(self._bin_maps, b, tuple(tolerances)) for b in range(self.BINS)]
+        the bins run on several threads (``Frame.detect``). The maps are filled in place, the
+        table's pieces returned: hand them to ``adopt`` once every job ran, before any other
+        use of the evidence. The same maps as built on first use."""
+        tolerances = tuple(tolerances)
+        shape = (len(tolerances), self.BINS, self.shape[0] + 2, self.shape[1] + 2)
+        self._filling = (tolerances, np.zeros(shape, np.uint8), np.zeros(shape, np.float32),
+                         np.zeros((self.BINS,) + self.shape, np.int32))
+        return [partial(self._fill_bin, b, *self._filling) for b in range(self.BINS)]
 
-    def adopt(self, per_bin: list[tuple], tolerances: tuple[float, ...] = ()) -> None:
-        """Keep the results of ``bin_jobs(tolerances)``, in the order of the jobs."""
+    def adopt(self, nearest_pieces: list[np.ndarray | None]) -> None:
+        """Keep the maps ``bin_jobs`` filled and the nearest-edge table of its jobs' results."""
+        tolerances, near, chance, labels = self._filling
         with self._nearest_lock:
-            self._nearest_like = self._nearest_tables([nearest for nearest, _, _ in per_bin])
+            self._nearest_like = self._nearest_tables(labels, nearest_pieces)
         for i, t in enumerate(tolerances):
-            self._near_like[t] = np.stack([near[i] for _, near, _ in per_bin]).view(bool)
-            self._chance[t] = np.stack([chance[i] for _, _, chance in per_bin])
+            self._near_like[t], self._chance[t] = near[i].view(bool), chance[i]
+        if tolerances:
+            self._stacked[tolerances] = near, chance
 
-    def _bin_maps(self, b: int, tolerances: tuple[float, ...]):
-        """Direction bin ``b``'s piece of ``nearest_like`` and of ``near_like`` and ``chance``
-        at each tolerance."""
-        near = [self._near_bin(b, t) for t in tolerances]
-        return self._nearest_bin(b), near, [self._chance_bin(n) for n in near]
+    def _fill_bin(self, b: int, tolerances: tuple[float, ...], near: np.ndarray, chance: np.ndarray,
+                  labels: np.ndarray) -> np.ndarray | None:
+        """Direction bin ``b``'s rows of the maps ``near`` and ``chance`` (tolerance, bin, ...) and
+        of the nearest-edge ``labels``; its piece of the table (``_nearest_bin``)."""
+        for i, t in enumerate(tolerances):
+            near[i, b, 1:-1, 1:-1] = self._dilated(b, t)
+            chance[i, b, 1:-1, 1:-1] = self._boxed(near[i, b, 1:-1, 1:-1])
+        return self._nearest_bin(b, labels)
 
     def orientation_bin(self, segments: np.ndarray) -> np.ndarray:
         return self._bins_of(segments[:, 1] - segments[:, 0])
@@ -330,15 +341,15 @@ class EdgeEvidence:
         False around the image: points outside it are clipped onto that border instead of
         being masked out (a mask costs several array operations). Cached per tolerance."""
         if tolerance_px not in self._near_like:
-            near = np.stack([self._near_bin(b, tolerance_px) for b in range(self.BINS)])
+            near = np.zeros((self.BINS, self.shape[0] + 2, self.shape[1] + 2), np.uint8)
+            for b in range(self.BINS):
+                near[b, 1:-1, 1:-1] = self._dilated(b, tolerance_px)
             self._near_like[tolerance_px] = near.view(bool)  # 0/1 bytes, dilated from 0/1
         return self._near_like[tolerance_px]
 
-    def _near_bin(self, b: int, tolerance_px: float) -> np.ndarray:
-        """``near_like(tolerance_px)[b]`` as uint8."""
-        near = np.zeros((self.shape[0] + 2, self.shape[1] + 2), np.uint8)
-        near[1:-1, 1:-1] = cv2.dilate(self.like_edges[b], chamfer_ball(tolerance_px))
-        return near
+    def _dilated(self, b: int, tolerance_px: float) -> np.ndarray:
+        """Bin ``b``'s like edges dilated by the chamfer ball of ``tolerance_px`` (uint8)."""
+        return cv2.dilate(self.like_edges[b], chamfer_ball(tolerance_px))
 
     def nearest_like(self) -> tuple[np.ndarray, np.ndarray]:
         """Per direction bin and pixel, the nearest pixel of ``like_edges``: (BINS, H, W)
@@ -347,28 +358,31 @@ class EdgeEvidence:
         first use, once per image (about 3 ms a bin at 640 x 480)."""
         with self._nearest_lock:
             if self._nearest_like is None:
-                self._nearest_like = self._nearest_tables([self._nearest_bin(b) for b in range(self.BINS)])
+                labels = np.zeros((self.BINS,) + self.shape, np.int32)
+                tables = [self._nearest_bin(b, labels) for b in range(self.BINS)]
+                self._nearest_like = self._nearest_tables(labels, tables)
             return self._nearest_like
 
-    def _nearest_bin(self, b: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """Bin ``b``'s labels (H, W) int32 and its label -> (x, y) table; None without pixels."""
+    def _nearest_bin(self, b: int, labels: np.ndarray) -> np.ndarray | None:
+        """Bin ``b``'s labels written into ``labels[b]`` (int32) and its label -> (x, y) table;
+        None without pixels (``labels[b]`` left as it was)."""
         like = self.like_edges[b]
         rows, cols = np.nonzero(like)
         if not len(rows):
             return None
-        _, labels = cv2.distanceTransformWithLabels(1 - like, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-        table = np.zeros((labels.max() + 1, 2))  # label -> (x, y) of its pixel
-        table[labels[rows, cols]] = np.stack([cols, rows], axis=1)
-        return labels, table
+        # written in place: an array per bin, alive until the offsets are known, cost more in page faults
+        cv2.distanceTransformWithLabels(1 - like, cv2.DIST_L2, 5, labels=labels[b], labelType=cv2.DIST_LABEL_PIXEL)
+        table = np.zeros((labels[b].max() + 1, 2))  # label -> (x, y) of its pixel
+        table[labels[b, rows, cols]] = np.stack([cols, rows], axis=1)
+        return table
 
-    def _nearest_tables(self, per_bin: list) -> tuple[np.ndarray, np.ndarray]:
+    def _nearest_tables(self, labels: np.ndarray, per_bin: list) -> tuple[np.ndarray, np.ndarray]:
         """``nearest_like`` from the bins' ``_nearest_bin``: their labels offset into one table."""
-        labels = np.zeros((self.BINS,) + self.shape, np.int32)
         tables = [np.full((1, 2), -1e6)]
-        for b, piece in enumerate(per_bin):
-            if piece is not None:
-                np.add(piece[0], sum(len(t) for t in tables), out=labels[b])
-                tables.append(piece[1])
+        for b, table in enumerate(per_bin):
+            if table is not None:
+                labels[b] += sum(len(t) for t in tables)
+                tables.append(table)
         return labels, np.concatenate(tables)
 
     @classmethod
@@ -444,15 +458,17 @@ class EdgeEvidence:
         border of 0 like ``near_like``. Cached per tolerance."""
         if tolerance_px not in self._chance:
             near = self.near_like(tolerance_px).view(np.uint8)
-            self._chance[tolerance_px] = np.stack([self._chance_bin(near[b]) for b in range(self.BINS)])
+            chance = np.zeros(near.shape, np.float32)
+            for b in range(self.BINS):
+                chance[b, 1:-1, 1:-1] = self._boxed(near[b, 1:-1, 1:-1])
+            self._chance[tolerance_px] = chance
         return self._chance[tolerance_px]
 
-    def _chance_bin(self, near: np.ndarray) -> np.ndarray:
-        """``chance`` of one bin from its ``near_like`` map (uint8, with its border)."""
-        chance = np.zeros(near.shape, np.float32)
-        chance[1:-1, 1:-1] = cv2.boxFilter(near[1:-1, 1:-1].astype(np.float32), -1,
-                                           (self.CHANCE_WINDOW, self.CHANCE_WINDOW), borderType=cv2.BORDER_REFLECT)
-        return chance
+    def _boxed(self, near: np.ndarray) -> np.ndarray:
+        """The share of set pixels of one bin's ``near_like`` map (uint8, no border) in the
+        ``CHANCE_WINDOW`` square about each pixel."""
+        return cv2.boxFilter(near.astype(np.float32), -1, (self.CHANCE_WINDOW, self.CHANCE_WINDOW),
+                             borderType=cv2.BORDER_REFLECT)
 
 
 @lru_cache(maxsize=16)
