@@ -44,7 +44,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import (LOOKS, PARTS, SPAN, TUNING,  # noqa: E402
+from bench.accuracy import (CONDITIONS, LOOKS, PARTS, SPAN, TUNING,  # noqa: E402
                             distractor_meshes, scene, step_file)
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
@@ -89,15 +89,18 @@ The checksum covers the numbers and the provenance: edit nothing by hand, fit ag
 
 
 class Collector:
-    """What each part's estimator reports on its own scenes and on the other parts' clean ones."""
+    """What each part's estimator reports on its own scenes (``positives``: conditions) and on
+    the other parts' (``NEGATIVE_CONDITIONS``), images ``images`` of each."""
 
-    def __init__(self, n: int, seed: int, step_deg: float, look: str, params: EstimatorParams, cache: Path):
-        self.n, self.seed, self.step_deg, self.look, self.cache = n, seed, step_deg, look, cache
+    def __init__(self, images: range, seed: int, step_deg: float, look: str, params: EstimatorParams, cache: Path,
+                 positives: tuple[str, ...] = POSITIVE_CONDITIONS):
+        self.images, self.seed, self.step_deg, self.look, self.cache = images, seed, step_deg, look, cache
+        self.positives = positives
         self.params = params.with_flat({"pose.min_score": RECORD_FLOOR, "pose.min_confidence": 0.0})
         self.distractors = distractor_meshes(cache)
 
     def scene(self, name: str, step: Path, condition: str):
-        return scene(self.cache, name, step, condition, self.n, self.distractors, self.look, SPAN, self.seed)
+        return scene(self.cache, name, step, condition, self.images, self.distractors, self.look, SPAN, self.seed)
 
     def collect(self, names: list[str]) -> list[dict]:
         """One ``record`` per image and estimator of ``names`` (owner: the estimator's part,
@@ -112,7 +115,7 @@ class Collector:
         for name, step in steps.items():
             estimator = Estimator(AspectGraph.load(cached_graph_path(step, self.cache, self.step_deg)), self.params)
             for other, other_step in steps.items():
-                for condition in POSITIVE_CONDITIONS if other == name else NEGATIVE_CONDITIONS:
+                for condition in self.positives if other == name else NEGATIVE_CONDITIONS:
                     for r in evaluate_scene(self.scene(other, other_step, condition), estimator, models[other]):
                         # a pose turned by an exact symmetry of the part is the same pose
                         correct = other == name and bool(r.errors and r.errors.success_sym)
@@ -131,7 +134,11 @@ def arrays(records: list[dict]):
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=12, help="images per part and condition")
+    parser.add_argument("--n", type=int, default=8, help="images per part and condition")
+    parser.add_argument("--start", type=int, default=0,
+                        help="first image of each scene: --start 12 checks a fit on images it did not see")
+    parser.add_argument("--positives", nargs="+", default=list(POSITIVE_CONDITIONS), choices=list(CONDITIONS),
+                        help="conditions of the part's own scenes")
     parser.add_argument("--parts", nargs="*", default=list(TUNING), choices=list(PARTS),
                         help="parts the threshold and the confidence are chosen on")
     parser.add_argument("--check-parts", nargs="*", default=[], choices=list(PARTS),
@@ -163,7 +170,8 @@ def main(argv=None) -> int:
         tuning = [r for r in stored if r["owner"] in args.parts and r["part"] in args.parts]
         checked = [r for r in stored if r["owner"] in args.check_parts and r["part"] in args.check_parts]
     else:
-        collector = Collector(args.n, args.seed, args.step_deg, args.look, params, cache)
+        collector = Collector(range(args.start, args.start + args.n), args.seed, args.step_deg, args.look, params,
+                              cache, tuple(args.positives))
         tuning = collector.collect(args.parts)
         checked = collector.collect(args.check_parts) if args.check_parts else []
     if args.records:
@@ -245,8 +253,9 @@ def fit_confidence(tuning: list[dict], names: tuple[str, ...], l2: float, args) 
     print("| score alone | | " + " | ".join(f"{average_precision(score[owners == n], y[owners == n]):.2f}"
                                           for n in dict.fromkeys(owners)) + f" | {average_precision(score, y):.2f} |")
     provenance = {"parts": list(args.parts), "scenes": f"{args.n} images per part and condition "
-                  f"({', '.join(POSITIVE_CONDITIONS)} of the part; {', '.join(NEGATIVE_CONDITIONS)} of the other "
-                  f"parts), seed {args.seed}, {args.look} look, graphs at {args.step_deg:g} deg",
+                  f"({', '.join(args.positives)} of the part; {', '.join(NEGATIVE_CONDITIONS)} of the other "
+                  f"parts), seed {args.seed}, {args.look} look, graphs at {args.step_deg:g} deg" +
+                  (f", images from {args.start}" if args.start else ""),
                   "estimates": int(len(y)), "right": int(y.sum()), "l2": l2, "version": __version__,
                   "commit": git_commit(), "command": "python bench/confidence.py " + " ".join(sys.argv[1:])}
     calibration = Calibration.fit(x, y, present, names, l2, provenance)
@@ -349,8 +358,8 @@ def choose_rule_at(outcomes: Outcomes, floor: float) -> float | None:
     """The level of ``LEVELS`` with the most right poses found at ``floor`` while its
     precision is at least today's rule's."""
     _, _, today_p, _ = outcomes.rule(TODAY, 0.0)
-    passing = [(outcomes.rule(floor, level)[1], outcomes.rule(floor, level)[2], float(level)) for level in LEVELS
-               if outcomes.rule(floor, level)[2] >= today_p]
+    rules = [(level, *outcomes.rule(floor, level)[1:3]) for level in LEVELS]
+    passing = [(right, precision, level) for level, right, precision in rules if precision >= today_p]
     return max(passing)[2] if passing else None
 
 
