@@ -283,6 +283,38 @@ def test_the_notched_plate_is_reported_ambiguous_when_its_notch_is_hidden(plate_
     assert ambiguous and margin < 0.1
 
 
+@pytest.mark.slow
+def test_a_near_tie_between_finalists_goes_to_the_pose_its_distinguishing_edges_show(plate_graph):
+    """``check_rivals``: each twin of the notched plate (its notch where the plate has none),
+    given a score a little above the truth's, loses to the truth on the notch, and never
+    displaces a truth that scores a little above it; a twin scoring more than
+    ``RIVAL_SCORE_GAP`` above the truth is not compared and stays first, and neither is a
+    pose at another place (``RIVAL_PLACE``), however little the image shows of it."""
+    from brepose_ros.online.frame import Frame
+    from brepose_ros.online.image_edges import detect_edges
+    from brepose_ros.online.refinement import Candidate
+    from brepose_ros.online.scoring import pose_scores
+    from brepose_ros.online.symmetry import RIVAL_SCORE_GAP, check_rivals
+    from brepose_ros.params import EstimatorParams
+
+    graph, step = plate_graph
+    image, camera, R, t = plate_image(step)
+    p = EstimatorParams()
+    frame = Frame.of(detect_edges(image, p.edges), camera)
+    score = float(pose_scores(graph, R[None], t[None], frame, p.pose)[0])
+    assert score >= p.pose.min_score + 0.05
+    near = np.nonzero(~graph.exact_symmetries)[0]
+    for R_twin, t_twin in zip(*graph.symmetric_poses(R, t, near)):
+        truth, twin = Candidate(score, R, t, None), Candidate(score + 0.02, R_twin, t_twin, None)
+        assert check_rivals([twin, truth], graph, frame, p.pose) is truth
+        ahead = Candidate(score + 0.02, R, t, None)
+        assert check_rivals([ahead, Candidate(score, R_twin, t_twin, None)], graph, frame, p.pose) is ahead
+        far = Candidate(score + RIVAL_SCORE_GAP + 0.01, R_twin, t_twin, None)
+        assert check_rivals([far, truth], graph, frame, p.pose) is far
+    elsewhere = Candidate(score + 0.02, R, t + np.array([0.1, 0.0, 0.0]), None)  # about 260 px aside, off the plate
+    assert check_rivals([elsewhere, Candidate(score, R, t, None)], graph, frame, p.pose) is elsewhere
+
+
 def test_an_ambiguous_pose_says_so_in_the_overlay_caption():
     from brepose_ros.evaluation.overlay import caption
     from brepose_ros.online.estimator import Estimate

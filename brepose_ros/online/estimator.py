@@ -17,8 +17,9 @@ Each stage lives in its own module; this one only wires them:
    template's own frame (``TetradHypotheses.at_seeds``); ``windows``: the tetrad generator
    on windows about the search's best places instead of the whole image and clusters
 4. ``refinement``: a first metric pose per hypothesis, refined on the image lines and
-   scored on the edge pixels (``scoring``); the best climbed over neighbouring views and
-   polished on the edge pixels
+   scored on the edge pixels (``scoring``); the best few climbed over neighbouring views and
+   polished on the edge pixels (the finalists), of which ``symmetry.check_rivals`` keeps the
+   best climbed or a near tie that the edges telling the two apart show by more
 5. ``larger``: a pose scoring below ``search.enough_score`` against larger poses about its
    place, searched again (``pose.larger_check``, off by default)
 6. ``symmetry``: the pose against its twins under the part's near symmetries, on the
@@ -60,7 +61,7 @@ from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segm
 from .confidence import load_calibration
 from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_shares, scored_tolerances
 from .search import TemplateSearch
-from .symmetry import check_twins
+from .symmetry import check_rivals, check_twins
 from .workers import WorkerPool, resolve_workers
 
 
@@ -201,7 +202,7 @@ class Estimator:
             return not_found
         clock = time.perf_counter()
         if best is None:
-            best = self._refiner.best(candidates, frame, p.pose, pool)
+            best = check_rivals(self._refiner.finalists(candidates, frame, p.pose, pool), self.graph, frame, p.pose)
             clock = _lap(timings, "refinement", clock)
         if p.pose.larger_check and search is not None and best.score < p.search.enough_score:
             best = larger_pose(best, self.graph, frame, p, search, hypotheses, self._refiner, pool)

@@ -33,9 +33,11 @@ projected size and halves down to the final tolerance, ``coarse_to_fine_radii``)
 goes through the same guarded rounds, and the aligned end is kept if it scores clearly
 higher (``PoseRefiner.realign``; docs/results/refinement.md).
 
-The chosen pose then climbs over neighbouring views of the graph (``PoseRefiner.climb``)
-and is polished on the Canny edge pixels at the final tolerance (``align_on_edges``), which
-hear edges the line detector missed; the polish is kept unless the score clearly drops.
+The best few distinct poses then climb over neighbouring views of the graph
+(``PoseRefiner.climb``); the best climbed is polished on the Canny edge pixels at the final
+tolerance (``align_on_edges``), which hear edges the line detector missed, and the polish is
+kept unless the score clearly drops. The estimator polishes the other climbed poses too,
+as rivals of the best for ``symmetry.check_rivals`` (``PoseRefiner.finalists``).
 """
 from __future__ import annotations
 
@@ -353,16 +355,24 @@ class PoseRefiner:
 
     def best(self, candidates: list[Candidate], frame: Frame, p: PoseParams, pool: WorkerPool = SERIAL) -> Candidate:
         """The best pose of the candidates: the distinct best ones climbed over neighbouring
-        views (until one scores ``CLEAR_SCORE``), the winner polished on edge pixels."""
+        views (until one scores ``CLEAR_SCORE``), the best climbed polished on edge pixels."""
+        return self.polish(self._climbed(candidates, frame, p, pool)[0], frame, p)
+
+    def finalists(self, candidates: list[Candidate], frame: Frame, p: PoseParams,
+                  pool: WorkerPool = SERIAL) -> list[Candidate]:
+        """The climbed poses of ``best`` (best climbed first), each polished: the first is
+        ``best``'s pose, the others its rivals (``symmetry.check_rivals``)."""
+        return [self.polish(c, frame, p) for c in self._climbed(candidates, frame, p, pool)]
+
+    def _climbed(self, candidates: list[Candidate], frame: Frame, p: PoseParams, pool: WorkerPool) -> list[Candidate]:
+        """The distinct best candidates climbed (until one scores ``CLEAR_SCORE``), best first."""
         candidates = sorted(candidates, key=lambda c: -c.score)
-        starts = distinct_poses(candidates, p.climb_candidates, self.graph.model_diameter)
-        best = self.climb(starts[0], frame, p, pool)
-        for start in starts[1:]:
-            if best.score >= CLEAR_SCORE:
+        climbed: list[Candidate] = []
+        for start in distinct_poses(candidates, p.climb_candidates, self.graph.model_diameter):
+            climbed.append(self.climb(start, frame, p, pool))
+            if climbed[-1].score >= CLEAR_SCORE:
                 break  # no other pose can explain the image much better; save its climb
-            climbed = self.climb(start, frame, p, pool)
-            best = climbed if climbed.score > best.score else best
-        return self.polish(best, frame, p)
+        return sorted(climbed, key=lambda c: -c.score)  # stable: of equal scores the better start
 
     def climb(self, start: Candidate, frame: Frame, p: PoseParams, pool: WorkerPool = SERIAL) -> Candidate:
         """Hill-climb the score over neighbouring views of the aspect graph.

@@ -18,6 +18,13 @@ the estimate says so (``Estimate.ambiguous``). Where the feature is too small at
 distance to leave ``MIN_DISTINCT_PIXELS`` of distinguishing edge, the difference of the
 whole scores chooses, and the margin is 0: a guess is no evidence. Exact symmetries need
 no check: their twins are the same pose of the part.
+
+The same comparison decides between the refinement's finalists (``check_rivals``): the
+best few distinct poses, climbed and polished, of which a wrong one may score a little
+above a right one (a part turned over at another depth, its outline lying on the real
+part's edges); a finalist at the same place scoring no more than ``RIVAL_SCORE_GAP`` below
+the best climbed one replaces it when the edges that tell the two apart show it clearly more
+(by ``pose.twin_margin``; docs/results/choice.md).
 """
 from __future__ import annotations
 
@@ -27,6 +34,7 @@ from ..aspect_graph import AspectGraph
 from ..geometry import rotation_angle_deg
 from ..params import PoseParams
 from .frame import Frame
+from .larger import projected_place
 from .lines2d import point_segment_distance, samples_along
 from .refinement import CLIMB_ROUNDS, SAME_POSE_DEG, SAME_POSE_DIAMETERS, Candidate, PoseRefiner
 from .scoring import pose_scores
@@ -47,6 +55,17 @@ MIN_DISTINCT_PIXELS = 10.0
 #: truth and flip scored 0.681 and 0.696), which the two margins count twice
 MIN_GAIN = 0.035
 
+#: a finalist of the refinement scoring at most this much below the best is compared with it
+#: on the edges that tell them apart (``check_rivals``): where a wrong finalist outscored a right
+#: one on the bench's clean images, by 0.004-0.028; a wider gap lets the evidence of a few
+#: distinguishing pixels overrule the whole score
+RIVAL_SCORE_GAP = 0.03
+#: ... and lies at the same place: its projected centre less than this share of the best's
+#: projected diameter from the best's. Two poses at different places share no edge, and their
+#: evidence, the confirmed share of all their edges, leaves out the score's explained share:
+#: a pose on clutter 142 degrees off replaced a right one (the notched plate's clutter image 5)
+RIVAL_PLACE = 0.5
+
 
 def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame: Frame,
                 p: PoseParams) -> tuple[Candidate, float | None]:
@@ -66,11 +85,32 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     return pick_by_evidence(best, twins, graph, frame, p)
 
 
+def check_rivals(finalists: list[Candidate], graph: AspectGraph, frame: Frame, p: PoseParams) -> Candidate:
+    """Of the refinement's finalists (``PoseRefiner.finalists``: the best climbed pose first),
+    the first, or a rival at its place (``RIVAL_PLACE``) scoring no more than
+    ``RIVAL_SCORE_GAP`` below it that the edges telling the two apart show by at least
+    ``pose.twin_margin`` more (``pick_by_evidence``, module doc)."""
+    best = finalists[0]
+    if (best.R @ graph.model_center + best.t)[2] <= 0:
+        return best
+    centre, size = projected_place(graph, best.R, best.t, frame)
+    rivals = [c for c in finalists[1:] if c.score >= best.score - RIVAL_SCORE_GAP
+              and np.hypot(*(frame.camera.project_model(graph.model_center[None], c.R, c.t)[0] - centre))
+              < RIVAL_PLACE * size]
+    if not rivals:
+        return best
+    winner, margin = pick_by_evidence(best, rivals, graph, frame, p)
+    # a lower score is overruled only where the image tells the two apart (the margin below
+    # which a pose is called ambiguous against its twin): a right pose lost to a pose on the
+    # part's rim at a 0.06 margin, a 176-degree turn lost to the right pose at 0.74
+    return winner if margin >= p.twin_margin else best
+
+
 def pick_by_evidence(best: Candidate, twins: list[Candidate], graph: AspectGraph, frame: Frame,
                      p: PoseParams) -> tuple[Candidate, float]:
     """Of the pose and its refined ``twins``, the one with the most evidence on the edges
-    that tell them apart, and its margin over its strongest rival (``check_twins``; also
-    bench/flips.py's generic alternates)."""
+    that tell them apart, and its margin over its strongest rival (``check_twins``,
+    ``check_rivals``; also bench/flips.py's generic alternates)."""
     # a twin is a rival when it could be reported itself and did not refine back onto the pose
     # (or onto another rival)
     rivals: list[Candidate] = []
