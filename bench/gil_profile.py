@@ -55,11 +55,19 @@ STEPS = [
     ("refinement", "score", "pose_scores", "scoring.py"),
     ("refinement", "twins", "check_twins", "symmetry.py"),
     ("refinement", "error ratio", "edge_pairs", "scoring.py"),
+    ("search", "response and chance maps", "of", "search.py"),
+    ("search", "response and chance maps", "chances", "search.py"),
+    ("search", "coarse kernel", "run", "search.py"),  # the chunk calling the numba kernel
+    ("search", "kept templates", "best", "search.py"),
+    ("matching", "seeds' windows", "_seed_job", "hypotheses.py"),
 ]
+#: the stage of a sample: the first function on its stack inside ``Estimator.estimate`` named
+#: here, by py-spy's qualified name (``Class.method``) before the plain one
 STAGE_OF = {"detect": "edges", "detect_edges": "edges", "of": "edges", "region_groups": "regions",
-            "normalised_region": "regions", "shortlist": "prefilter", "match": "matching",
-            "verify": "refinement", "best": "refinement", "check_twins": "refinement", "edge_pairs": "refinement",
-            "hypotheses": "search"}
+            "normalised_region": "regions", "shortlist": "prefilter", "match": "matching", "at_seeds": "matching",
+            "verify": "refinement", "realign": "refinement", "best": "refinement", "check_twins": "refinement",
+            "edge_pairs": "refinement", "pose_shares": "refinement", "hypotheses": "search", "coarse": "search",
+            "TemplateSearch.best": "search", "places": "search"}
 STAGE_ORDER = ["edges", "regions", "prefilter", "matching", "refinement", "search", "other"]
 FRAME = re.compile(r"^(?P<function>.+?) \((?P<file>[^():]+)(?::\d+)?\)$")
 
@@ -132,12 +140,13 @@ def stage_counts(lines: list[str]) -> dict[tuple[str, str, bool], int]:
         stack, _, count = line.rpartition(" ")
         frames = [m.groupdict() for m in map(FRAME.match, stack.split(";")) if m]
         for f in frames:  # py-spy names methods Class.method
-            f["function"] = f["function"].rpartition(".")[2]
+            f["qualified"], f["function"] = f["function"], f["function"].rpartition(".")[2]
         names = [f["function"] for f in frames]
         if "estimate" not in names:
             continue  # loading, warming up
         inside = frames[names.index("estimate") + 1:]
-        stage = next((STAGE_OF[f["function"]] for f in inside if f["function"] in STAGE_OF), "other")
+        stage = next((STAGE_OF.get(f["qualified"], STAGE_OF.get(f["function"])) for f in inside
+                      if f["qualified"] in STAGE_OF or f["function"] in STAGE_OF), "other")
         step = "rest"
         for f in inside:
             for step_stage, label, function, file in STEPS:
