@@ -11,7 +11,8 @@ by its half turn about its axis; how many ``ok`` are right only so is counted ap
 estimator's path (``Estimator._candidates``, ``PoseRefiner.finalists``, ``check_rivals``,
 ``check_twins``) is replayed at the parameters given, and the loss is the first that applies:
 
-- ``ok``: the final pose is right and found; ``low``: right but below ``pose.min_score``;
+- ``ok``: the final pose is right and found (its score at least ``pose.min_score``; the
+  confidence floor ``pose.min_confidence`` is not applied); ``low``: right but not found;
 - ``twin``: the pose before the twin check was right, the check turned it (d);
 - ``wall``: the truth refined like a hypothesis and polished scores below ``pose.min_score``;
 - ``stopped``: no near candidate, but one appears when every generator runs
