@@ -56,14 +56,14 @@ MIN_DISTINCT_PIXELS = 10.0
 MIN_GAIN = 0.035
 
 #: a finalist of the refinement scoring at most this much below the best is compared with it
-#: on the edges that tell them apart (``check_rivals``): where a wrong finalist outscored a right
-#: one on the bench's clean images, by 0.004-0.028; a wider gap lets the evidence of a few
-#: distinguishing pixels overrule the whole score
+#: on the edges that tell them apart (``check_rivals``): where a right finalist lost to a wrong
+#: one on the bench's clean images, it was by 0.006-0.035 (4 images); a wider gap would let the
+#: evidence of a few distinguishing pixels overrule a clearly higher score
 RIVAL_SCORE_GAP = 0.03
 #: ... and lies at the same place: its projected centre less than this share of the best's
 #: projected diameter from the best's. Two poses at different places share no edge, and their
-#: evidence, the confirmed share of all their edges, leaves out the score's explained share:
-#: a pose on clutter 142 degrees off replaced a right one (the notched plate's clutter image 5)
+#: evidence, the confirmed share of all their edges, leaves out the score's explained share
+#: (a guard by that reasoning; no bench image changed by it)
 RIVAL_PLACE = 0.5
 
 
