@@ -57,7 +57,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.accuracy import CONDITIONS, PARTS, bench_steps, graph_and_model, part_set, scene_path  # noqa: E402
-from bench.hypothesis_recall import near_truth  # noqa: E402
+from bench.hypothesis_recall import chosen_pose, near_truth  # noqa: E402
 from bench.occlusion_diagnosis import refined_truth  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
@@ -66,7 +66,7 @@ from brepose_ros.online.image_edges import detect_edges  # noqa: E402
 from brepose_ros.online.refinement import distinct_poses  # noqa: E402
 from brepose_ros.online.regions import region_groups  # noqa: E402
 from brepose_ros.online.scoring import CLEAR_SCORE  # noqa: E402
-from brepose_ros.online.symmetry import check_rivals, check_twins  # noqa: E402
+from brepose_ros.online.symmetry import check_twins  # noqa: E402
 from brepose_ros.online.workers import SERIAL  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
@@ -84,9 +84,7 @@ def candidates_and_best(estimator: Estimator, frame: Frame, p: EstimatorParams, 
     candidates, best = estimator._candidates(frame, region_groups(frame, p.matching), p, estimator._hypotheses,
                                              estimator._search, SERIAL, {}, time.perf_counter())
     if candidates and best is None:
-        refiner = estimator._refiner
-        best = (check_rivals(refiner.finalists(candidates, frame, p.pose), estimator.graph, frame, p.pose)
-                if rivals else refiner.best(candidates, frame, p.pose))
+        best = chosen_pose(estimator, candidates, frame, p, rivals)
     return candidates, best
 
 

@@ -13,7 +13,11 @@ the kernel's ranked templates shows as -1, see ``search_oracle``), whether a
 refined candidate does (recall, bench/hypothesis_recall.py's definition), and the final
 pose. The loss, the first that applies:
 
-- ``ok``: the final pose is a success and found;
+Right is CONVENTIONS.md success up to the part's exact symmetries throughout (as *near*
+is), the final pose is the estimator's (finalists, rival and twin checks), and found is the
+``pose.min_score`` floor alone (the confidence floor is not applied).
+
+- ``ok``: the final pose is right and found;
 - ``wall``: even the refined truth scores below ``pose.min_score``;
 - ``coarse``: no seed and no place near the truth, and no candidate near it;
 - ``matching``: a seed or a place is near the truth but no candidate is (the matching or
@@ -36,7 +40,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.accuracy import CONDITIONS, PARTS, bench_steps, graph_and_model, part_set, scene_path  # noqa: E402
-from bench.hypothesis_recall import near_truth  # noqa: E402
+from bench.hypothesis_recall import chosen_pose, near_truth  # noqa: E402
 from bench.search_oracle import hypothesis_near, near_templates  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
@@ -68,7 +72,7 @@ def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> d
     truth = float(pose_scores(g, R0, t0, frame, p.pose)[0])
     refined = refined_truth(estimator, frame, entry)
     parts = pose_shares(g, refined.R, refined.t, frame, p.pose)[0]
-    refined_ok = pose_errors(refined.R, refined.t, entry.R, entry.t, model, g).success
+    refined_ok = pose_errors(refined.R, refined.t, entry.R, entry.t, model, g).success_sym
     coarse = search.coarse(frame, p.search)
     near = near_templates(coarse, g, frame.camera, entry)
     order = np.argsort(-coarse.score)
@@ -84,10 +88,10 @@ def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> d
                      for c, size in search.places(coarse, p.search.windows))
     candidates = estimator.candidates(frame)
     near_c = [c for c in candidates if near_truth(c.R, c.t, entry, g)]
-    final = refiner.best(candidates, frame, p.pose) if candidates else None
+    final = chosen_pose(estimator, candidates, frame, p) if candidates else None
     if final is not None and p.pose.twin_check:
         final, _ = check_twins(final, g, refiner, frame, p.pose)
-    success = final is not None and pose_errors(final.R, final.t, entry.R, entry.t, model, g).success
+    success = final is not None and pose_errors(final.R, final.t, entry.R, entry.t, model, g).success_sym
     found = final is not None and final.score >= p.pose.min_score
     if success and found:
         loss = "ok"
