@@ -177,6 +177,28 @@ class PoseParams(Ranged):
     twin_margin: float = doc(
         "a pose whose evidence over its best twin (difference of the shares of their distinguishing edges the "
         "image confirms) is below this is reported ambiguous", 0.2, 0.0, 1.0)
+    min_distance: float = doc(
+        "the nearest the part's model centre can be to the camera, metres; 0: unknown. With pose.max_distance, "
+        "a known working distance: the template search tries only the part's sizes between the two, and a pose "
+        "outside them is reported as not found (docs/results/occlusion.md)", 0.0, 0.0, 1000.0)
+    max_distance: float = doc(
+        "the farthest the part's model centre can be from the camera, metres; 0: unknown (see pose.min_distance)",
+        0.0, 0.0, 1000.0)
+
+    def __post_init__(self):
+        super().__post_init__()
+        if 0 < self.max_distance < self.min_distance:
+            raise ValueError(f"min_distance ({self.min_distance:g} m) must not exceed max_distance "
+                             f"({self.max_distance:g} m)")
+
+    @property
+    def distances(self) -> tuple[float, float]:
+        """The working range (min_distance, max_distance), metres; 0: that end unknown."""
+        return self.min_distance, self.max_distance
+
+    def within_distance(self, distance: float) -> bool:
+        """Whether a pose whose model centre lies ``distance`` metres away is in the working range."""
+        return distance >= self.min_distance and (self.max_distance == 0 or distance <= self.max_distance)
 
 
 #: the hypothesis generators (``search.generators`` joins them with '+', run in that order)

@@ -180,3 +180,46 @@ def test_climb_starts_skip_poses_already_taken():
     starts = distinct_poses(same + [turned, moved], 2, diameter=0.1)
     assert [c.score for c in starts] == [0.9, 0.7]
     assert [c.score for c in distinct_poses(same + [turned, moved], 3, diameter=0.1)] == [0.9, 0.7, 0.6]
+
+
+@pytest.mark.slow
+def test_a_known_working_distance_keeps_the_true_pose_and_refuses_other_depths(bracket, estimator, tmp_path):
+    """Clean images with exact ground truth: the truth's model-centre distance d. Where the
+    estimator finds the true pose at default, it still finds it with the working range d / 1.25
+    to 1.25 d, and reports its distance; the true rotation with the centre 1.6x as far along
+    its ray (a rescaled fit) is dropped from the candidates while the truth is kept; with the
+    range 1.5-2.5 d, which excludes the truth, no reported pose lies outside it."""
+    from brepose_ros.online.estimator import in_working_range
+    from brepose_ros.online.refinement import Candidate
+    from brepose_ros.evaluation.metrics import pose_errors
+
+    graph, default = estimator.graph, estimator.params
+    generate_scene(bracket[0], tmp_path / "scene", 3, seed=3, config=SceneConfig())
+    scene = load_scene(tmp_path / "scene")
+
+    def right(estimate, entry) -> bool:
+        return estimate.found and pose_errors(estimate.R, estimate.t, entry.R, entry.t, bracket[2]).success
+
+    kept_right = 0
+    try:
+        for entry in scene.entries:
+            centre = entry.R @ graph.model_center + entry.t
+            d = float(np.linalg.norm(centre))
+            image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
+            estimator.params = default
+            if right(estimator.estimate(image, scene.camera), entry):
+                around = default.with_flat({"pose.min_distance": d / 1.25, "pose.max_distance": d * 1.25})
+                estimator.params = around
+                kept = estimator.estimate(image, scene.camera)
+                assert right(kept, entry) and kept.distance == pytest.approx(d, rel=0.02)
+                true = Candidate(0.9, entry.R, entry.t, None)
+                farther = Candidate(0.95, entry.R, entry.t + 0.6 * centre, None)
+                assert in_working_range([farther, true], graph, around.pose) == [true]
+                kept_right += 1
+            beyond = default.with_flat({"pose.min_distance": 1.5 * d, "pose.max_distance": 2.5 * d})
+            estimator.params = beyond
+            refused = estimator.estimate(image, scene.camera)
+            assert not refused.found or beyond.pose.within_distance(refused.distance)
+    finally:
+        estimator.params = default
+    assert kept_right >= 2, "too few right poses at default to test the range on"

@@ -101,3 +101,21 @@ def test_every_default_lies_in_its_range_and_the_bounds_are_enforced():
     with pytest.raises(ValueError, match="must be int, got 2.5"):
         EstimatorParams().with_flat({"matching.workers": 2.5})
     assert EstimatorParams().with_flat({"pose.min_score": "1e-3"}).pose.min_score == 0.001
+
+
+@pytest.mark.parametrize("values, message", [
+    ({"min_distance": 0.6, "max_distance": 0.4}, r"pose.min_distance \(0.6 m\) must not exceed max_distance \(0.4 m\)"),
+    ({"min_distance": -0.1}, r"pose.min_distance must be in \[0, 1000\]"),
+    ({"max_distance": -0.5, "min_distance": 0.2}, r"pose.max_distance must be in \[0, 1000\]"),
+])
+def test_a_hostile_working_range_is_refused_naming_it(values, message):
+    with pytest.raises(ValueError, match=message):
+        EstimatorParams.from_dict({"pose": values})
+
+
+def test_a_working_range_end_left_at_zero_is_unknown():
+    only_near = EstimatorParams.from_dict({"pose": {"min_distance": 0.5}}).pose
+    assert only_near.within_distance(50.0) and not only_near.within_distance(0.4)
+    only_far = EstimatorParams.from_dict({"pose": {"max_distance": 0.5}}).pose
+    assert only_far.within_distance(0.01) and not only_far.within_distance(0.6)
+    assert EstimatorParams().pose.within_distance(1e6)

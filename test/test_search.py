@@ -316,3 +316,34 @@ def test_the_larger_pose_check_rights_a_shrunken_turned_pose_and_keeps_the_truth
                            estimator._refiner) is truth
     estimator.close()
     assert righted >= 5  # 6 of 6 measured
+
+
+def test_a_working_distance_limits_the_sizes_searched_to_the_parts_between_the_two():
+    """The drawn bracket of the test above at its known depth (focal / pixels per metre): with
+    a working range of -20 / +25 % about it the sizes searched bracket its projected diameter
+    and nothing outside, and the best hypothesis still has its depth; with only a nearest
+    distance the largest size is the part's there and the smallest the parameters'."""
+    from brepose_ros.camera import Camera
+    from brepose_ros.online.frame import Frame
+
+    camera = Camera.from_fov(640, 480, 600.0)
+    part = bracket_outline(0.8)
+    pixels_per_metre, center = 312.5, np.array([300.0, 220.0])
+    image = Drawing(480, 640)
+    image.draw(center + pixels_per_metre * part)
+    evidence = image.evidence()
+    frame = Frame(segments_px=np.zeros((0, 2, 2)), segments_n=np.zeros((0, 2, 2)),
+                  refine_segments_n=np.zeros((0, 2, 2)), camera=camera,
+                  evidence=evidence, edge_points_n=camera.undistort(evidence.pixels))
+    p = SearchParams()
+    finder = search.TemplateSearch(one_view_graph(part), p)
+    depth = camera.focal / pixels_per_metre
+    size = pixels_per_metre * finder.library.diameter
+    sizes = finder.sizes(frame, p, (depth / 1.25, depth * 1.25))
+    assert sizes[0] == pytest.approx(size / 1.25) and size * 1.25 <= sizes[-1] <= size * 1.25 ** 2
+    assert len(sizes) < len(finder.sizes(frame, p))
+    best = finder.best(finder.coarse(frame, p, distances=(depth / 1.25, depth * 1.25)), frame, 1, p)[0]
+    assert 1 / best.scale == pytest.approx(depth, rel=0.13)
+    nearest = finder.sizes(frame, p, (depth, 0.0))
+    diagonal = np.hypot(640, 480)
+    assert sizes[-1] >= nearest[-1] >= size * (1 - 1e-9) and nearest[0] == pytest.approx(p.min_size_fraction * diagonal)

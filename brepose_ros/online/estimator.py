@@ -27,7 +27,9 @@ Each stage lives in its own module; this one only wires them:
 7. ``scoring``: the error ratio and the score's shares at the pose; ``confidence``: the
    probability that the pose is right where the part is in view in a share ``pose.prior``
    of the images; found (``is_found``) if the score passes its floor ``pose.min_score`` and
-   the confidence ``pose.min_confidence``
+   the confidence ``pose.min_confidence`` and its model centre lies within the working range
+   ``pose.min_distance`` - ``pose.max_distance`` (when given; the search then tries only the
+   part's sizes in that range, and the candidates and finalists outside it are dropped)
 
 ``estimate(..., paper_only=True)`` stops after step 3, as the seed paper does (section 6):
 the bipartite matching's best-covered hypothesis over all regions, its view turned into a
@@ -54,7 +56,7 @@ from ..camera import Camera
 from ..params import EstimatorParams, PoseParams, SearchParams
 from .frame import Frame
 from .hypotheses import TetradHypotheses, best_covered, best_per_region
-from .larger import larger_pose
+from .larger import centre_distance, larger_pose
 from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
@@ -109,6 +111,9 @@ class Estimate:
     #: the probability that the pose is right (``confidence.Calibration``); 0 when no pose was
     #: verified (no candidate, or ``paper_only``)
     confidence: float = 0.0
+    #: how far the final pose's model centre lies from the camera, metres (also when not found);
+    #: 0 when no pose was verified
+    distance: float = 0.0
 
 
 class Estimator:
@@ -202,7 +207,9 @@ class Estimator:
             return not_found
         clock = time.perf_counter()
         if best is None:
-            best = check_rivals(self._refiner.finalists(candidates, frame, p.pose, pool), self.graph, frame, p.pose)
+            finalists = self._refiner.finalists(candidates, frame, p.pose, pool)
+            best = check_rivals(in_working_range(finalists, self.graph, p.pose) or finalists, self.graph, frame,
+                                p.pose)
             clock = _lap(timings, "refinement", clock)
         if p.pose.larger_check and search is not None and best.score < p.search.enough_score:
             best = larger_pose(best, self.graph, frame, p, search, hypotheses, self._refiner, pool)
@@ -220,7 +227,8 @@ class Estimator:
                             image_segments=pairs.image_segments, model_segments=pairs.model_segments,
                             timings=timings, matched_view=int(best.hypothesis.view), symmetry_margin=margin,
                             ambiguous=margin is not None and margin < p.pose.twin_margin, shares=shares,
-                            size_pixels=size, model_length_pixels=length)
+                            size_pixels=size, model_length_pixels=length,
+                            distance=centre_distance(self.graph, best))
         estimate.confidence = calibration.confidence(estimate, p.pose.prior)
         if is_found(estimate, p.pose):
             estimate.found, estimate.R, estimate.t, estimate.covariance = True, best.R, best.t, best.covariance
@@ -242,17 +250,18 @@ class Estimator:
         candidates: list[Candidate] = []
         coarse = None  # the template search's, once per image for every stage that needs it
         for n, stage in enumerate(p.search.stages):
+            candidates = in_working_range(candidates, self.graph, p.pose)
             if n and candidates:
                 # the climbed, polished pose decides, not the raw candidates: on the bench a
                 # right pose's candidate scored 0.75-0.94 and the climb lifted it, while wrong
                 # ones stayed below 0.85 (docs/DECISIONS.md); kept as a start for the final climb
-                settled = self._refiner.best(candidates, frame, p.pose, pool)
+                settled = in_working_range([self._refiner.best(candidates, frame, p.pose, pool)], self.graph, p.pose)
                 clock = _lap(timings, "refinement", clock)
-                if settled.score >= p.search.enough_score:
-                    return [settled], settled
-                candidates = candidates + [settled]
+                if settled and settled[0].score >= p.search.enough_score:
+                    return settled, settled[0]
+                candidates = candidates + settled
             if stage != "tetrad" and coarse is None:
-                coarse = search.coarse(frame, p.search, pool)
+                coarse = search.coarse(frame, p.search, pool, distances=p.pose.distances)
                 clock = _lap(timings, "search", clock)
             if stage == "search":
                 # not aligned on edge pixels: the search's many coarse templates, aligned, fit
@@ -274,7 +283,7 @@ class Estimator:
             else:
                 candidates, clock = self._tetrads(frame, [groups[:1], groups[1:]], p, hypotheses, pool, timings,
                                                   clock, candidates)
-        return candidates, None
+        return in_working_range(candidates, self.graph, p.pose), None
 
     def _tetrads(self, frame: Frame, batches: list[list[np.ndarray]], p: EstimatorParams,
                  hypotheses: TetradHypotheses, pool: WorkerPool, timings: dict, clock: float,
@@ -289,7 +298,7 @@ class Estimator:
         the first batch would be wasted."""
         first = len(candidates)
         for batch in batches:
-            if not batch or any(c.score >= CLEAR_SCORE for c in candidates):
+            if not batch or any(c.score >= CLEAR_SCORE for c in in_working_range(candidates, self.graph, p.pose)):
                 break
             regions = [r for r in (normalised_region(indices, frame, p.matching) for indices in batch)
                        if r is not None]
@@ -338,8 +347,19 @@ class Estimator:
 
 def is_found(estimate: Estimate, p: PoseParams) -> bool:
     """The found rule: the confidence decides (docs/results/confidence.md), above a floor on
-    the score that keeps a pose the verification barely confirms from being reported."""
-    return estimate.score >= p.min_score and estimate.confidence >= p.min_confidence
+    the score that keeps a pose the verification barely confirms from being reported; a pose
+    outside the working range (``pose.min_distance`` - ``max_distance``) cannot be right."""
+    return (estimate.score >= p.min_score and estimate.confidence >= p.min_confidence
+            and p.within_distance(estimate.distance))
+
+
+def in_working_range(candidates: list[Candidate], graph: AspectGraph, p: PoseParams) -> list[Candidate]:
+    """The candidates whose model centre lies in the working range: the others cannot be
+    right, and a rescaled fit to a piece of the part at another depth can outscore the
+    truth (docs/results/symmetry.md)."""
+    if p.distances == (0.0, 0.0):
+        return candidates
+    return [c for c in candidates if p.within_distance(centre_distance(graph, c))]
 
 
 def template_search(graph: AspectGraph, p: SearchParams) -> TemplateSearch | None:

@@ -74,7 +74,7 @@ def larger_pose(best: Candidate, graph: AspectGraph, frame: Frame, p: EstimatorP
     # image's best) would otherwise ask for templates, and maps padded for them, of many
     # thousands of pixels (one such image took 24 GB)
     sizes = size * SIZE_RATIOS
-    sizes = sizes[sizes <= TemplateSearch.sizes(frame, p.search)[-1]]
+    sizes = sizes[sizes <= search.sizes(frame, p.search, p.pose.distances)[-1]]
     if not len(sizes):
         return best
     h, w = frame.evidence.shape

@@ -337,11 +337,20 @@ class TemplateSearch:
                         np.zeros((1, BINS, 1, 1), np.float32), 1, 0.5, 1, np.zeros(1), np.zeros(1, np.int64),
                         np.zeros(1, np.int64))
 
-    @staticmethod
-    def sizes(frame: Frame, p: SearchParams) -> np.ndarray:
-        """The part diameters in pixels the search tries (geometric steps)."""
+    def sizes(self, frame: Frame, p: SearchParams, distances: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+        """The part diameters in pixels the search tries (geometric steps): between the
+        parameters' shares of the image diagonal, or, for each end of ``distances`` (the part's
+        model centre nearest and farthest from the camera, metres; 0: unknown) that is known,
+        the part's diameter at that distance."""
         diagonal = np.hypot(frame.camera.width, frame.camera.height)
         low, high = p.min_size_fraction * diagonal, p.max_size_fraction * diagonal
+        nearest, farthest = distances
+        at_one_metre = frame.camera.focal * self.library.diameter
+        if farthest > 0:
+            low = at_one_metre / farthest
+        if nearest > 0:
+            high = at_one_metre / nearest
+        low = min(low, high)  # one end known and beyond the other's default
         count = max(1, int(np.ceil(np.log(high / low) / np.log(p.size_step))) + 1)
         return low * p.size_step ** np.arange(count)
 
@@ -379,14 +388,16 @@ class TemplateSearch:
         return self._templates[key]
 
     def coarse(self, frame: Frame, p: SearchParams, pool: WorkerPool = SERIAL, sizes: np.ndarray | None = None,
-               box: tuple[int, int, int, int] | None = None) -> "CoarseResult":
+               box: tuple[int, int, int, int] | None = None,
+               distances: tuple[float, float] = (0.0, 0.0)) -> "CoarseResult":
         """Every coarse template's best score and position in the image (module doc, step 3);
         the templates are split into one chunk per worker thread (the kernel releases the GIL).
-        ``sizes`` (pixels, ascending) replace the parameters' and ``box`` (x0, y0, x1, y1
-        pixels) keeps only its edge pixels: a search about one place (``larger``)."""
+        ``sizes`` (pixels, ascending) replace those of the parameters and ``distances``
+        (``sizes``), and ``box`` (x0, y0, x1, y1 pixels) keeps only its edge pixels: a search
+        about one place (``larger``)."""
         lib = self.library
         factor = p.coarse_factor
-        sizes = self.sizes(frame, p) if sizes is None else sizes
+        sizes = self.sizes(frame, p, distances) if sizes is None else sizes
         pad = int(np.ceil(sizes[-1] / factor / 2)) + p.spread + 1
         maps = ResponseMaps.of(frame.evidence, factor, p.spread, pad, box)
         chance = maps.chances([max(3, int(round(d / factor)) | 1) for d in sizes], pool)

@@ -15,7 +15,8 @@ Topics (node name ``estimator``; relative names can be remapped with ``--ros-arg
 - out ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): one array per image, header copied
   from the image, one status named ``estimator: <part>`` per part. Levels: OK = found with
   error ratio <= ``pose.warn_error_ratio``; WARN = not found (score below
-  ``pose.min_score`` or confidence below ``pose.min_confidence``), error ratio above it, or a
+  ``pose.min_score``, confidence below ``pose.min_confidence``, or the pose outside
+  ``pose.min_distance`` - ``pose.max_distance``), error ratio above it, or a
   pose the image cannot tell from its symmetric twin (``Estimate.ambiguous``); ERROR = the
   image or the intrinsics could not be used, or the estimator raised (also logged). Values:
   found, score, confidence (the probability that the pose is right), error_ratio,
@@ -273,6 +274,10 @@ class Part:
 
 def diagnose(estimate: Estimate, params: EstimatorParams) -> tuple[bytes, str]:
     """Diagnostic level and message of one estimate (documented thresholds, module docstring)."""
+    if not estimate.found and estimate.score > 0 and not params.pose.within_distance(estimate.distance):
+        return DiagnosticStatus.WARN, (f"part not found (the best pose lies {estimate.distance:.3g} m away, outside "
+                                       f"pose.min_distance {params.pose.min_distance:g} - pose.max_distance "
+                                       f"{params.pose.max_distance:g})")
     if not estimate.found:
         return DiagnosticStatus.WARN, (f"part not found (score {estimate.score:.2f}, pose.min_score "
                                        f"{params.pose.min_score:g}; confidence {estimate.confidence:.2f}, "
