@@ -556,3 +556,17 @@ def test_real_pipeline_covariance_is_a_small_positive_definite_matrix(ros, sampl
     position_sigma = np.sqrt(np.diag(covariance)[:3])
     assert np.all(position_sigma < 0.05 * sample.diameter), position_sigma
     assert np.all(np.degrees(np.sqrt(np.diag(covariance)[3:])) < 5.0)
+
+
+def test_diagnostics_say_when_the_best_pose_lies_outside_the_working_range():
+    from brepose_ros.ros.node import diagnose
+
+    params = EstimatorParams().with_flat({"pose.min_distance": 0.4, "pose.max_distance": 0.6})
+    far = Estimate(False, None, None, score=0.8, error_ratio=0.2, view_index=3, n_image_segments=12, n_matched=8,
+                   n_nearest=6, confidence=0.7, distance=0.95)
+    level, message = diagnose(far, params)
+    assert level == DiagnosticStatus.WARN
+    assert "0.95 m away" in message and "pose.min_distance 0.4 - pose.max_distance 0.6" in message
+    inside = Estimate(False, None, None, score=0.3, error_ratio=0.2, view_index=3, n_image_segments=12, n_matched=8,
+                      n_nearest=6, confidence=0.01, distance=0.5)
+    assert "pose.min_score" in diagnose(inside, params)[1]

@@ -347,3 +347,4 @@ def test_a_working_distance_limits_the_sizes_searched_to_the_parts_between_the_t
     nearest = finder.sizes(frame, p, (depth, 0.0))
     diagonal = np.hypot(640, 480)
     assert sizes[-1] >= nearest[-1] >= size * (1 - 1e-9) and nearest[0] == pytest.approx(p.min_size_fraction * diagonal)
+    assert finder.sizes(frame, p, (1e-4, 1e-4))[-1] <= 4.0 * diagonal  # the largest max_size_fraction

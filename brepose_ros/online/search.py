@@ -53,7 +53,7 @@ from numba import njit
 
 from ..aspect_graph import AspectGraph
 from ..camera import virtual_alignment
-from ..params import SearchParams
+from ..params import SearchParams, field_ranges
 from ..viewsphere import fibonacci_directions
 from .frame import Frame
 from .hypotheses import Hypothesis
@@ -346,10 +346,14 @@ class TemplateSearch:
         low, high = p.min_size_fraction * diagonal, p.max_size_fraction * diagonal
         nearest, farthest = distances
         at_one_metre = frame.camera.focal * self.library.diameter
+        # within the sizes the fractions may name: a distance of millimetres would otherwise
+        # ask for templates, and maps padded for them, of many thousands of pixels
+        smallest = field_ranges()["search.min_size_fraction"][0] * diagonal
+        largest = field_ranges()["search.max_size_fraction"][1] * diagonal
         if farthest > 0:
-            low = at_one_metre / farthest
+            low = np.clip(at_one_metre / farthest, smallest, largest)
         if nearest > 0:
-            high = at_one_metre / nearest
+            high = np.clip(at_one_metre / nearest, smallest, largest)
         low = min(low, high)  # one end known and beyond the other's default
         count = max(1, int(np.ceil(np.log(high / low) / np.log(p.size_step))) + 1)
         return low * p.size_step ** np.arange(count)
