@@ -18,7 +18,9 @@ milliseconds of the candidates (``gen ms``) and of the whole image after edges (
 Scenes are those of bench/accuracy.py (varied look, seed 100, cached in data/bench).
 ``--known-size RATIO`` sets every variant's search sizes, image by image, to the part's true
 projected diameter divided and multiplied by RATIO (``search.min_size_fraction`` /
-``max_size_fraction``): a user who knows the working distance that well.
+``max_size_fraction``): the search's half of a known working distance alone (users set
+``pose.min_distance`` / ``max_distance``, which also drop poses outside the range:
+bench/known_distance.py measures that).
 """
 from __future__ import annotations
 
