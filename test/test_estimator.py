@@ -223,3 +223,41 @@ def test_a_known_working_distance_keeps_the_true_pose_and_refuses_other_depths(b
     finally:
         estimator.params = default
     assert kept_right >= 2, "too few right poses at default to test the range on"
+
+
+FIRST_IMAGE_SCRIPT = """
+import sys
+import cv2
+from numba.core.registry import CPUDispatcher
+from brepose_ros.aspect_graph import AspectGraph
+from brepose_ros.online import kernels, prefilter, scoring, search
+from brepose_ros.online.estimator import Estimator
+from brepose_ros.scene_folder import load_scene
+
+def signatures():
+    return {f"{m.__name__}.{name}": len(f.signatures) for m in (kernels, prefilter, scoring, search)
+            for name, f in vars(m).items() if isinstance(f, CPUDispatcher)}
+
+estimator = Estimator(AspectGraph.load(sys.argv[1]))
+scene = load_scene(sys.argv[2])
+before = signatures()
+for entry in scene.entries:
+    estimator.estimate(cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED), scene.camera)
+estimator.close()
+print(sorted(k for k, n in signatures().items() if n > before[k]))
+"""
+
+
+@pytest.mark.slow
+def test_the_first_images_compile_no_kernel_the_start_did_not_warm(bracket, tmp_path):
+    """In a fresh process, an estimator's construction compiles (or loads) every kernel for
+    the argument types its images pass: a kernel compiled again on the first image (a strided
+    array where the warm-up passed a contiguous one) made the first image 1.8-2x the steady one."""
+    import subprocess
+    import sys
+
+    generate_scene(bracket[0], tmp_path / "scene", 2, seed=5, config=SceneConfig(offcenter=True, clutter=3))
+    run = subprocess.run([sys.executable, "-c", FIRST_IMAGE_SCRIPT, str(bracket[1]), str(tmp_path / "scene")],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.strip().splitlines()[-1] == "[]"

@@ -138,7 +138,8 @@ class ChamferPrefilter:
         coarse = self.scores(maps, phis, self.COARSE_STRIDE, pool).ravel()
         keep = min(len(coarse), self.COARSE_KEEP * count)
         pairs = np.argpartition(coarse, keep - 1)[:keep] if keep < len(coarse) else np.arange(len(coarse))
-        views, which = np.unravel_index(pairs, phis.shape)
+        # contiguous, as the kernel was warmed with (unravel_index returns strided views)
+        views, which = (np.ascontiguousarray(a) for a in np.unravel_index(pairs, phis.shape))
         turned = np.mod(phis[views, which].astype(np.float32), np.float32(2 * np.pi))[:, None]
         fine = self._scores_of(maps, views, turned, 1, pool)[:, 0]
         count = min(count, len(fine))

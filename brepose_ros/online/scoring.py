@@ -250,8 +250,9 @@ class EdgeEvidence:
         #: gradient): the pre-filter's picture of an image region
         self.pixels = np.stack([cols, rows], axis=1)
         #: the columns of row y's edge pixels are ``columns[row_starts[y]:row_starts[y + 1]]``,
-        #: ascending: the scores count edge pixels row by row
-        self.row_starts, self.columns = np.searchsorted(rows, np.arange(self.shape[0] + 1)), cols
+        #: ascending: the scores count edge pixels row by row (contiguous, as the kernel was
+        #: warmed with: np.nonzero returns strided views)
+        self.row_starts, self.columns = np.searchsorted(rows, np.arange(self.shape[0] + 1)), np.ascontiguousarray(cols)
         self.directions = np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi)
         bins = (self.directions / np.pi * self.BINS).astype(int) % self.BINS
         #: per direction bin b, the edge pixels of bins b - 1, b and b + 1
