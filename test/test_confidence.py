@@ -5,7 +5,7 @@ import yaml
 
 from brepose_ros.evaluation.metrics import reliability
 from brepose_ros.online.confidence import FEATURES, Calibration, Logistic, features, load_calibration, shipped_path
-from brepose_ros.online.estimator import Estimate, is_found
+from brepose_ros.online.estimator import Estimate, is_found, not_found_reason
 from brepose_ros.online.scoring import Shares
 from brepose_ros.params import EstimatorParams
 
@@ -211,3 +211,17 @@ def test_pose_prior_moves_an_estimates_confidence_with_how_often_the_part_is_in_
     params = EstimatorParams().with_flat({"pose.min_confidence": 0.1})
     assert not judged(estimate(0.58, 0.6, 0.8, 0.99), params.with_flat({"pose.prior": 0.1}).pose)
     assert judged(estimate(0.58, 0.6, 0.8, 0.99), params.with_flat({"pose.prior": 1.0}).pose)
+
+
+def test_a_refused_pose_says_which_rule_refused_it():
+    """The reason logs and /diagnostics give: the working range when the pose lies outside
+    it (however good its score), else the score and the confidence beside their floors."""
+    ranged = EstimatorParams().with_flat({"pose.min_distance": 0.4, "pose.max_distance": 0.6}).pose
+    far = estimate(0.9, confidence=0.9, distance=0.9)
+    assert not is_found(far, ranged)
+    assert not_found_reason(far, ranged) == ("the best pose lies 0.9 m away, outside pose.min_distance 0.4 - "
+                                             "pose.max_distance 0.6")
+    weak = estimate(0.3, confidence=0.01, distance=0.5)
+    assert not is_found(weak, ranged)
+    assert not_found_reason(weak, ranged) == ("score 0.30, pose.min_score 0.55; confidence 0.01, "
+                                              "pose.min_confidence 0.04")

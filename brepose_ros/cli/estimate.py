@@ -11,7 +11,7 @@ from ..camera import Camera
 from ..evaluation.metrics import percent, prediction_entry, write_predictions
 from ..evaluation.overlay import draw_overlay
 from ..image_codec import read_image_file
-from ..online.estimator import Estimator
+from ..online.estimator import Estimator, not_found_reason
 from ..params import EstimatorParams
 from .common import ArgumentParser, run
 
@@ -48,7 +48,7 @@ def main(argv=None) -> int:
             estimate = estimator.estimate(image, camera)
             predictions.append(prediction_entry(path, estimate))
             measures = f"score {estimate.score:.2f}, confidence {estimate.confidence:.2f}"
-            state = measures if estimate.found else f"not found ({measures})"
+            state = measures if estimate.found else f"not found ({not_found_reason(estimate, estimator.params.pose)})"
             if estimate.found and estimate.ambiguous:
                 state += f", ambiguous: the image cannot tell it from a symmetric twin (margin " \
                          f"{estimate.symmetry_margin:.2f})"

@@ -353,6 +353,16 @@ def is_found(estimate: Estimate, p: PoseParams) -> bool:
             and p.within_distance(estimate.distance))
 
 
+def not_found_reason(estimate: Estimate, p: PoseParams) -> str:
+    """Why ``is_found`` refused ``estimate``, in words for logs and diagnostics: the working
+    range if the pose lies outside it, else the score and the confidence with their floors."""
+    if estimate.score > 0 and not p.within_distance(estimate.distance):
+        return (f"the best pose lies {estimate.distance:.3g} m away, outside pose.min_distance {p.min_distance:g} - "
+                f"pose.max_distance {p.max_distance:g}")
+    return (f"score {estimate.score:.2f}, pose.min_score {p.min_score:g}; confidence {estimate.confidence:.2f}, "
+            f"pose.min_confidence {p.min_confidence:g}")
+
+
 def in_working_range(candidates: list[Candidate], graph: AspectGraph, p: PoseParams) -> list[Candidate]:
     """The candidates whose model centre lies in the working range: the others cannot be
     right, and a rescaled fit to a piece of the part at another depth can outscore the

@@ -82,7 +82,7 @@ from ..camera import Camera, CameraError
 from ..evaluation.overlay import draw_overlay
 from ..image_codec import MAX_IMAGE_PIXELS, camera_from_info
 from ..online.confidence import load_calibration
-from ..online.estimator import Estimate, Estimator
+from ..online.estimator import Estimate, Estimator, not_found_reason
 from ..online.workers import WorkerPool
 from ..params import EstimatorParams, field_docs, field_ranges, one_line
 from .messages import (COMPRESSED_SUFFIX, DIAGNOSTICS_TOPIC, diagnostic_status, image_from_msg,
@@ -274,14 +274,8 @@ class Part:
 
 def diagnose(estimate: Estimate, params: EstimatorParams) -> tuple[bytes, str]:
     """Diagnostic level and message of one estimate (documented thresholds, module docstring)."""
-    if not estimate.found and estimate.score > 0 and not params.pose.within_distance(estimate.distance):
-        return DiagnosticStatus.WARN, (f"part not found (the best pose lies {estimate.distance:.3g} m away, outside "
-                                       f"pose.min_distance {params.pose.min_distance:g} - pose.max_distance "
-                                       f"{params.pose.max_distance:g})")
     if not estimate.found:
-        return DiagnosticStatus.WARN, (f"part not found (score {estimate.score:.2f}, pose.min_score "
-                                       f"{params.pose.min_score:g}; confidence {estimate.confidence:.2f}, "
-                                       f"pose.min_confidence {params.pose.min_confidence:g})")
+        return DiagnosticStatus.WARN, f"part not found ({not_found_reason(estimate, params.pose)})"
     if estimate.error_ratio > params.pose.warn_error_ratio:
         return DiagnosticStatus.WARN, (f"found, but error ratio {estimate.error_ratio:.2f} > "
                                        f"pose.warn_error_ratio {params.pose.warn_error_ratio:g}")
