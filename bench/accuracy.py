@@ -34,6 +34,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -43,6 +44,8 @@ from brepose_ros.evaluation.metrics import (  # noqa: E402
     NOT_FOUND_ERROR_RATE, ModelPoints, evaluate_scene, scene_summary)
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
+from brepose_ros.online.frame import Frame  # noqa: E402
+from brepose_ros.online.image_edges import detect_edges  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
 from brepose_ros.synthetic import shapes  # noqa: E402
@@ -112,6 +115,22 @@ def scene_path(cache: Path, name: str, condition: str, look: str = "varied", spa
                seed: int = 100) -> Path:
     """Where the scene of a bench part in one condition (and look, span, seed) is cached."""
     return cache / scenes_folder(look, span) / f"{name}_{condition}_{seed}"
+
+
+def cached_frames(cache: Path, name: str, condition: str, params: EstimatorParams, start: int, n: int):
+    """Images ``start`` .. ``start + n`` of a bench part's cached scene in one condition
+    (``scene_path``): (index, ground-truth entry, image, its edges found at ``params``)."""
+    cached = load_scene(scene_path(cache, name, condition))
+    for i, entry in enumerate(cached.entries[start:start + n], start=start):
+        image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
+        yield i, entry, image, Frame.of(detect_edges(image, params.edges), cached.camera)
+
+
+def overridden_params(overrides: list[str]) -> EstimatorParams:
+    """The default parameters with flat ``key=value`` overrides (a bench script's positional
+    arguments, e.g. ``search.seeds=256``), each value read as its default's type."""
+    defaults = EstimatorParams().flat()
+    return EstimatorParams().with_flat({k: type(defaults[k])(v) for k, v in (o.split("=", 1) for o in overrides)})
 
 
 def scene(cache: Path, name: str, step: Path, condition: str, images: int | range, distractors,

@@ -53,23 +53,20 @@ from types import SimpleNamespace
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, bench_steps, graph_and_model, part_set, scene_path  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, bench_steps, cached_frames, graph_and_model, overridden_params, part_set  # noqa: E402
 from bench.hypothesis_recall import chosen_pose, near_truth  # noqa: E402
 from bench.occlusion_diagnosis import refined_truth  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
-from brepose_ros.online.image_edges import detect_edges  # noqa: E402
 from brepose_ros.online.refinement import distinct_poses  # noqa: E402
 from brepose_ros.online.regions import region_groups  # noqa: E402
 from brepose_ros.online.scoring import CLEAR_SCORE  # noqa: E402
 from brepose_ros.online.symmetry import check_twins  # noqa: E402
 from brepose_ros.online.workers import SERIAL  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
-from brepose_ros.scene_folder import load_scene  # noqa: E402
 
 LOSSES = ("ok", "low", "twin", "wall", "stopped", "none", "drift", "dropped", "outscored")
 KINDS = ("twin", "smaller", "elsewhere", "look-alike")
@@ -160,9 +157,7 @@ def main(argv=None) -> int:
                         help="the final choice without the rival check (the best climbed pose, polished)")
     parser.add_argument("overrides", nargs="*", help="flat parameters, e.g. pose.climb_candidates=4")
     args = parser.parse_args(argv)
-    defaults = EstimatorParams().flat()
-    params = EstimatorParams().with_flat({k: type(defaults[k])(v)
-                                          for k, v in (o.split("=", 1) for o in args.overrides)})
+    params = overridden_params(args.overrides)
     cache = REPO / "data" / "bench"
     print("| part | condition | image | best near (rank, climbed) | near climbed+polished | chosen | "
           "chosen rot deg / centre d | loss | wrong kind |")
@@ -173,10 +168,7 @@ def main(argv=None) -> int:
         graph, model = graph_and_model(step, cache)
         estimator = Estimator(graph, params)
         for condition in args.conditions:
-            scene = load_scene(scene_path(cache, name, condition))
-            for entry in scene.entries[args.start:args.start + args.n]:
-                image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
-                frame = Frame.of(detect_edges(image, params.edges), scene.camera)
+            for _, entry, _, frame in cached_frames(cache, name, condition, params, args.start, args.n):
                 d = classify(estimator, frame, entry, model, rivals=not args.no_rivals)
                 key = (part_set(name), condition)
                 tally.setdefault(key, Counter())[d["loss"]] += 1

@@ -24,19 +24,15 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, bench_steps, graph_and_model, scene_path  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, bench_steps, cached_frames, graph_and_model  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import pose_errors  # noqa: E402
 from brepose_ros.geometry import rotation_about  # noqa: E402
-from brepose_ros.online.frame import Frame  # noqa: E402
-from brepose_ros.online.image_edges import detect_edges  # noqa: E402
 from brepose_ros.online.refinement import Candidate, PoseRefiner, hypothesis_rounds  # noqa: E402
 from brepose_ros.online.workers import SERIAL  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
-from brepose_ros.scene_folder import load_scene  # noqa: E402
 
 SETTINGS = {"lines only": False, "aligned": True}
 
@@ -70,10 +66,7 @@ def main(argv=None) -> int:
         graph, model = graph_and_model(step, cache)
         refiner = PoseRefiner(graph)
         for condition in args.conditions:
-            scene = load_scene(scene_path(cache, name, condition))
-            for i, entry in enumerate(scene.entries[args.start:args.start + args.n], start=args.start):
-                image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
-                frame = Frame.of(detect_edges(image, params.edges), scene.camera)
+            for i, entry, _, frame in cached_frames(cache, name, condition, params, args.start, args.n):
                 rng = np.random.default_rng([i, *map(ord, name + condition)])
                 row = []
                 for angle in args.angles:

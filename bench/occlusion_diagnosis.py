@@ -36,22 +36,18 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, bench_steps, graph_and_model, part_set, scene_path  # noqa: E402
+from bench.accuracy import CONDITIONS, PARTS, bench_steps, cached_frames, graph_and_model, overridden_params, part_set  # noqa: E402
 from bench.hypothesis_recall import chosen_pose, near_truth  # noqa: E402
 from bench.search_oracle import hypothesis_near, near_templates  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
-from brepose_ros.online.image_edges import detect_edges  # noqa: E402
 from brepose_ros.online.refinement import Candidate, hypothesis_rounds  # noqa: E402
 from brepose_ros.online.scoring import pose_scores, pose_shares  # noqa: E402
 from brepose_ros.online.symmetry import check_twins  # noqa: E402
 from brepose_ros.online.workers import SERIAL  # noqa: E402
-from brepose_ros.params import EstimatorParams  # noqa: E402
-from brepose_ros.scene_folder import load_scene  # noqa: E402
 
 LOSSES = ("ok", "wall", "coarse", "matching", "choice", "low")
 
@@ -120,9 +116,7 @@ def main(argv=None) -> int:
     parser.add_argument("--conditions", nargs="*", default=["occl30+clutter"], choices=list(CONDITIONS))
     parser.add_argument("overrides", nargs="*", help="flat parameters, e.g. search.seeds=256")
     args = parser.parse_args(argv)
-    defaults = EstimatorParams().flat()
-    params = EstimatorParams().with_flat({k: type(defaults[k])(v)
-                                          for k, v in (o.split("=", 1) for o in args.overrides)})
+    params = overridden_params(args.overrides)
     cache = REPO / "data" / "bench"
     print("| part | condition | image | truth | refined (ok) | conf / expl / sig | coarse rank | seed / place near "
           "| recall (best near) | best cand. | final (success) | loss |")
@@ -132,10 +126,7 @@ def main(argv=None) -> int:
         graph, model = graph_and_model(step, cache)
         estimator = Estimator(graph, params)
         for condition in args.conditions:
-            scene = load_scene(scene_path(cache, name, condition))
-            for entry in scene.entries[args.start:args.start + args.n]:
-                image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
-                frame = Frame.of(detect_edges(image, params.edges), scene.camera)
+            for _, entry, _, frame in cached_frames(cache, name, condition, params, args.start, args.n):
                 d = diagnose(estimator, frame, entry, model)
                 tally.setdefault((part_set(name), condition), Counter())[d["loss"]] += 1
                 s = d["parts"]

@@ -22,6 +22,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.accuracy import overridden_params  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.camera import virtual_alignment  # noqa: E402
 from brepose_ros.geometry import rot_z, rotation_angle_deg  # noqa: E402
@@ -29,7 +30,6 @@ from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.image_edges import detect_edges  # noqa: E402
 from brepose_ros.online.refinement import pose_from_similarity  # noqa: E402
 from brepose_ros.online.search import TemplateSearch  # noqa: E402
-from brepose_ros.params import EstimatorParams  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
 
 NEAR_DEG, NEAR_SIZE, NEAR_POSITION = 20.0, 1.2, 0.1
@@ -42,8 +42,7 @@ def main(argv=None) -> int:
     parser.add_argument("--first", type=int, default=12, help="images of the scene")
     parser.add_argument("overrides", nargs="*", help="flat parameters, e.g. search.angles=36")
     args = parser.parse_args(argv)
-    defaults = EstimatorParams().flat()
-    p = EstimatorParams().with_flat({k: type(defaults[k])(v) for k, v in (o.split("=", 1) for o in args.overrides)})
+    p = overridden_params(args.overrides)
     graph = AspectGraph.load(args.graph)
     search = TemplateSearch(graph, p.search)
     scene = load_scene(args.scene)
