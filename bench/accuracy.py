@@ -36,6 +36,7 @@ sys.path.insert(0, str(REPO))
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
+import yaml  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from bench.graphs import cached_graph_path  # noqa: E402
@@ -128,9 +129,9 @@ def cached_frames(cache: Path, name: str, condition: str, params: EstimatorParam
 
 def overridden_params(overrides: list[str]) -> EstimatorParams:
     """The default parameters with flat ``key=value`` overrides (a bench script's positional
-    arguments, e.g. ``search.seeds=256``), each value read as its default's type."""
-    defaults = EstimatorParams().flat()
-    return EstimatorParams().with_flat({k: type(defaults[k])(v) for k, v in (o.split("=", 1) for o in overrides)})
+    arguments, e.g. ``search.seeds=256``), each value read as a YAML scalar as in a parameter
+    file (``false``, ``0.3``) and checked by ``EstimatorParams``."""
+    return EstimatorParams().with_flat({k: yaml.safe_load(v) for k, v in (o.split("=", 1) for o in overrides)})
 
 
 def scene(cache: Path, name: str, step: Path, condition: str, images: int | range, distractors,
