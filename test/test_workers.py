@@ -63,6 +63,16 @@ def test_split_gives_contiguous_near_equal_chunks(size, count, minimum, lengths)
     assert all(a.stop == b.start for a, b in zip(chunks[:-1], chunks[1:]))
 
 
+@pytest.mark.parametrize("size, count, dealt", [
+    (2, 5, [[0, 2, 4], [1, 3]]), (3, 2, [[0], [1]]), (1, 3, [[0, 1, 2]]), (2, 0, [[]]),
+])
+def test_deal_hands_every_index_out_once_round_robin(size, count, dealt):
+    pool = WorkerPool(size)
+    chunks = pool.deal(count)
+    pool.close()
+    assert [list(range(count))[c] for c in chunks] == dealt
+
+
 def test_zero_workers_means_one_per_core():
     assert resolve_workers(0) == cpu_count() >= 1 and resolve_workers(3) == 3
 

@@ -73,6 +73,14 @@ class WorkerPool:
         bounds = [count * k // chunks for k in range(chunks + 1)]
         return [slice(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]
 
+    def deal(self, count: int) -> list[slice]:
+        """``range(count)`` dealt like cards into at most ``size`` strided slices (``count`` 0
+        gives one empty slice): where neighbours in a batch cost alike (the refinement's poses
+        come the whole image's first, then by score), each thread gets its share of every kind,
+        which contiguous chunks (``split``) do not."""
+        chunks = max(1, min(self.size, count))
+        return [slice(k, count, chunks) for k in range(chunks)]
+
     def close(self) -> None:
         if self._pool is not None:
             self._pool.shutdown(wait=True)
