@@ -300,9 +300,7 @@ class Estimator:
         for batch in batches:
             if not batch or any(c.score >= CLEAR_SCORE for c in in_working_range(candidates, self.graph, p.pose)):
                 break
-            regions = [r for r in (normalised_region(indices, frame, p.matching) for indices in batch)
-                       if r is not None]
-            jobs = hypotheses.shortlist(regions, p.matching, pool)
+            jobs = hypotheses.shortlist_groups(frame, batch, p.matching, pool)
             clock = _lap(timings, "prefilter", clock)
             matched = hypotheses.match(jobs, p.matching, pool)
             clock = _lap(timings, "matching", clock)

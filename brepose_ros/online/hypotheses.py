@@ -25,8 +25,8 @@ from ..params import MatchParams
 from . import matching
 from .frame import Frame
 from .prefilter import ChamferPrefilter, orientation_histogram, orientation_spectra, rotation_candidates
-from .regions import MIN_REGION_SEGMENTS, Region, segments_within
-from .workers import WorkerPool
+from .regions import MIN_REGION_SEGMENTS, Region, normalised_region, segments_within
+from .workers import SERIAL, WorkerPool
 
 
 @dataclass
@@ -87,6 +87,24 @@ class TetradHypotheses:
         """The pre-filter's (view, rotation) jobs of every region, region by region."""
         return [(region, view, phi) for region in regions for view, phi in self._views.shortlist(region, p, pool)]
 
+    def shortlist_groups(self, frame: Frame, groups: list[np.ndarray], p: MatchParams,
+                         pool: WorkerPool) -> list[Job]:
+        """``shortlist`` of groups of image segments (indices) normalised as regions
+        (``normalised_region``; a group that cannot be is skipped). With at least as many
+        groups as threads, each group is one task on the threads, normalised and shortlisted
+        there: the normalisation's numpy steps of one group then run beside another's
+        pre-filter kernels, where group by group they ran alone. Fewer groups (the whole
+        image) split each one's views between the threads instead; the same jobs either way."""
+        def jobs_of(indices: np.ndarray, views_pool: WorkerPool) -> list[Job]:
+            region = normalised_region(indices, frame, p)
+            return [] if region is None else self.shortlist([region], p, views_pool)
+
+        if pool.size > 1 and len(groups) >= pool.size:
+            per_group = pool.map(lambda indices: jobs_of(indices, SERIAL), groups)
+        else:
+            per_group = [jobs_of(indices, pool) for indices in groups]
+        return [job for jobs in per_group for job in jobs]
+
     def match(self, jobs: list[Job], p: MatchParams, pool: WorkerPool) -> list[Hypothesis]:
         """Hypotheses of the jobs, in job order. Consecutive jobs of one region run together
         (``_match_batch``), split into one batch per worker thread."""
@@ -106,9 +124,14 @@ class TetradHypotheses:
 
         The window is the image segments whose midpoints lie within ``window`` times the
         seed's part radius of its centre; a seed with fewer than ``MIN_REGION_SEGMENTS``
-        there gives nothing."""
-        jobs = [job for job in (self._seed_job(seed, frame, window, p) for seed in seeds) if job is not None]
-        return self.match(jobs, p, pool)
+        there gives nothing. One task per seed on the threads, its window and its matching
+        (``match`` of its one job): the windows' numpy steps of one seed run beside another's
+        compiled matching, where all windows were cut before the first matching."""
+        def matched(seed: Hypothesis) -> list[Hypothesis]:
+            job = self._seed_job(seed, frame, window, p)
+            return [] if job is None else self._match_batch([job], p)
+
+        return [h for hypotheses in pool.map(matched, seeds) for h in hypotheses]
 
     def _seed_job(self, seed: Hypothesis, frame: Frame, window: float, p: MatchParams) -> Job | None:
         """The seed's window as a region normalised so that the seed's view, normalised as
