@@ -78,6 +78,54 @@ def test_the_truth_outranks_near_poses_with_30_percent_hidden_behind_a_textured_
         assert evidence.shares(wrong, 2.0, MARGIN).score < truth - 0.25
 
 
+def test_a_pose_too_far_on_pieces_of_the_parts_edges_is_told_by_the_edges_running_on():
+    """An L plate, and the same model 1.5x as far (scaled by 1 / 1.5 about the plate's outer
+    corner, so two of its edges lie on pieces of the plate's): beyond their ends the plate's
+    edges run on, in line and alike, where the model has none; the truth's ends show no
+    run-on, nor with 30 % of the plate hidden (occlusion cuts edges short). The run-on lowers
+    the far pose's score, not the truth's. The model 1.5x as near finds no edge beyond its
+    ends (its tails are unconfirmed instead)."""
+    gray = np.full((300, 400), 90, np.uint8)
+    corners, model = l_plate((200, 150), 200)
+    cv2.fillPoly(gray, [np.round(corners[0]).astype(np.int32)], 200)
+    cv2.fillPoly(gray, [np.round(corners[1]).astype(np.int32)], 90)
+    corner = corners[0][0]
+    far, near = corner + (model - corner) / 1.5, corner + (model - corner) * 1.5
+    hidden = gray.copy()
+    hidden[:, :160] = 30  # a plain occluder over the plate's left 30 %
+    for image in (gray, hidden):
+        evidence = scoring.EdgeEvidence(*edge_stage(image.astype(np.float32)))
+        truth, wrong = evidence.shares(model, 2.0, MARGIN), evidence.shares(far, 2.0, MARGIN)
+        assert truth.run_on < 0.02 and wrong.run_on > truth.run_on + 0.05
+        assert wrong.score == pytest.approx(wrong._replace(run_on=0.0).score
+                                            * (1 - scoring.EdgeEvidence.RUN_ON_WEIGHT * wrong.run_on))
+        assert truth.score == truth._replace(run_on=0.0).score
+    evidence = scoring.EdgeEvidence(*edge_stage(gray.astype(np.float32)))
+    assert evidence.shares(far, 2.0, MARGIN).run_on > 0.1
+    assert evidence.shares(near, 2.0, MARGIN).run_on < 0.02
+
+
+def test_the_run_on_kernel_counts_probes_beyond_ends_off_other_model_edges():
+    """Against a plain count: one horizontal model edge from x 100 to 140 on an image edge
+    from 60 to 200. Its probes reach 0.25 x 40 = 10 px past each end from 4 px out (clear 3):
+    20 points, all on the image edge; a second model edge crossing one probe's path takes the
+    points within 3 px of it out (and adds its own probes); a model edge 4 px long has none."""
+    near = np.zeros((1, 8, 242, 322), np.uint8)
+    near[0, :, 120 + 1, 60 + 1:200 + 1] = 1
+    chance = np.zeros(near.shape, np.float32)
+    out = np.zeros((3, 3))
+    edge = np.array([[[100.0, 120.0], [140.0, 120.0]]])
+    crossing = np.array([[[150.0, 100.0], [150.0, 140.0]]])
+    short = np.array([[[100.0, 120.0], [104.0, 120.0]]])
+    kernels.run_on_kernel(np.concatenate([edge, edge, crossing, short]), np.array([0, 1, 3, 4]), near, chance, 0.25,
+                          6.0, 30.0, 10.0, 3.0, out)
+    assert out[0].tolist() == [20.0, 20.0, 0.0]
+    # right of the end (x 144-153) the points within 3 px of x = 150 (147-153) are the model's;
+    # the crossing edge's own 20 probes (above and below it) find no image edge
+    assert out[1].tolist() == [33.0, 13.0, 0.0]
+    assert out[2].tolist() == [0.0, 0.0, 0.0]
+
+
 def test_outlines_of_curved_faces_are_looked_up_within_their_own_reach():
     """A disc whose image edge lies 3 px inside the model's outline (a soft silhouette: the
     curved face darkens towards it) beside a plate whose sharp edges lie on the model's. At

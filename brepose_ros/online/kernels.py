@@ -287,6 +287,8 @@ def warm_up() -> None:
     pose_evidence_kernel(segments * 3.0, np.zeros(2, np.int64), np.array([0, 2]), 1.0, near,
                          np.zeros((1, 8, 6, 6), np.float32), row_starts, columns, np.ones(1), 1.0, 0.2, 2, 1,
                          np.zeros((1, 5)), np.zeros((0, 0), np.uint8))
+    run_on_kernel(segments * 3.0, np.array([0, 2]), near, np.zeros((1, 8, 6, 6), np.float32), 0.25, 6.0, 30.0, 10.0,
+                  3.0, np.zeros((1, 3)))
 
 
 @njit(nogil=True, cache=True)
@@ -706,3 +708,78 @@ def nearest_like_edge(labels: np.ndarray, pixels: np.ndarray, direction: int, u:
 def _direction_bin(dx: float, dy: float, bins: int) -> int:
     """The direction bin (of ``bins`` over pi) of a segment running (dx, dy)."""
     return int(math.atan2(dy, dx) % math.pi / math.pi * bins) % bins
+
+
+@njit(nogil=True, cache=True)
+def run_on_kernel(segments: np.ndarray, spans: np.ndarray, near: np.ndarray, chance: np.ndarray, share: float,
+                  min_probe: float, max_probe: float, min_length: float, clear: float, out: np.ndarray) -> None:
+    """Where the image's edges run on past the ends of B poses' projected model edges, into
+    ``out`` (B, 3): pose b's segments are ``segments[spans[b]:spans[b + 1]]`` (pixels).
+
+    Beyond each end of every segment at least ``min_length`` long, along its direction, a
+    probe a pixel apart from ``clear`` + 1 to ``clear`` + 1 + its length times ``share``
+    (within ``min_probe`` - ``max_probe``) pixels out; probe points inside the image and
+    farther than ``clear`` from every segment of the pose (a corner turns into the next
+    model edge, a curve into its next piece: there the model itself has an edge) are
+    counted. out[0] their number, out[1] those a like edge confirms (``near[0, bin, y, x]``,
+    the segment's direction bin), out[2] the number chance would confirm (``chance``).
+    A pose too small or too far lies on pieces of the part's longer edges, which run on past
+    its ends; occlusion cuts edges short and adds no run-on, clutter only by chance.
+    """
+    bins, height, width = near.shape[1], near.shape[2] - 2, near.shape[3] - 2
+    far = float(max(height, width))
+    radius = int(math.floor(clear))
+    reach = int(math.ceil(clear + 1.0 + max_probe)) + radius + 1
+    for b in range(len(spans) - 1):
+        out[b, :] = 0.0
+        lo, hi = spans[b], spans[b + 1]
+        if hi <= lo:
+            continue
+        # a pose far off projects far outside: clipped a few image sizes out, as pose_evidence_kernel does
+        model_px = np.minimum(np.maximum(segments[lo:hi], -4.0 * far), 5.0 * far)
+        x0, y0, x1, y1 = width, height, 0, 0
+        for s in range(model_px.shape[0]):
+            for e in range(2):
+                x0, x1 = min(x0, int(math.floor(model_px[s, e, 0]))), max(x1, int(math.ceil(model_px[s, e, 0])) + 1)
+                y0, y1 = min(y0, int(math.floor(model_px[s, e, 1]))), max(y1, int(math.ceil(model_px[s, e, 1])) + 1)
+        x0, y0, x1, y1 = max(x0 - reach, 0), max(y0 - reach, 0), min(x1 + reach, width), min(y1 + reach, height)
+        if x1 <= x0 or y1 <= y0:
+            continue
+        # the model's own pixels on a grid of the box, to keep probes off other model edges
+        marked = np.zeros((y1 - y0, x1 - x0), np.bool_)
+        for s in range(model_px.shape[0]):
+            ax, ay = model_px[s, 0, 0], model_px[s, 0, 1]
+            dx, dy = model_px[s, 1, 0] - ax, model_px[s, 1, 1] - ay
+            count = min(max(int(math.ceil(math.sqrt(dx * dx + dy * dy))), 1), 4000)
+            for j in range(count + 1):
+                cx, cy = int(np.rint(ax + j / count * dx)), int(np.rint(ay + j / count * dy))
+                if x0 <= cx < x1 and y0 <= cy < y1:
+                    marked[cy - y0, cx - x0] = True
+        for s in range(model_px.shape[0]):
+            ax, ay = model_px[s, 0, 0], model_px[s, 0, 1]
+            dx, dy = model_px[s, 1, 0] - ax, model_px[s, 1, 1] - ay
+            length = math.sqrt(dx * dx + dy * dy)
+            if length < min_length:
+                continue
+            ux, uy = dx / length, dy / length
+            k = _direction_bin(dx, dy, bins)
+            steps = int(min(max(share * length, min_probe), max_probe))
+            for e in range(2):
+                sign = 1.0 if e == 1 else -1.0
+                ex, ey = model_px[s, e, 0], model_px[s, e, 1]
+                for j in range(steps):
+                    d = sign * (clear + 1.0 + j)
+                    x, y = int(np.rint(ex + d * ux)), int(np.rint(ey + d * uy))
+                    if not (x0 <= x < x1 and y0 <= y < y1):
+                        continue
+                    on_model = False
+                    for oy in range(-radius, radius + 1):
+                        for ox in range(-radius, radius + 1):
+                            if ox * ox + oy * oy <= clear * clear and 0 <= y + oy - y0 < y1 - y0 \
+                                    and 0 <= x + ox - x0 < x1 - x0 and marked[y + oy - y0, x + ox - x0]:
+                                on_model = True
+                    if on_model:
+                        continue
+                    out[b, 0] += 1.0
+                    out[b, 1] += near[0, k, y + 1, x + 1]
+                    out[b, 2] += chance[0, k, y + 1, x + 1]

@@ -19,7 +19,7 @@ from ..aspect_graph import AspectGraph
 from ..offline.hidden_lines import SHARP
 from ..camera import Camera, project_normalised
 from ..params import EstimatorParams, PoseParams
-from .kernels import pose_evidence_kernel
+from .kernels import pose_evidence_kernel, run_on_kernel
 from .kernels import grown_outline
 from .lines2d import nearest_lines, samples_along
 
@@ -147,11 +147,16 @@ class Shares(NamedTuple):
     explained: float
     #: how unlikely the confirmations are by chance: 1 - exp(-length x KL / SIGNIFICANT_PIXELS)
     significance: float
+    #: of the probe points beyond the ends of the model edges, the share like edges confirm
+    #: beyond chance: the image's edges run on where the model's end
+    run_on: float = 0.0
 
     @property
     def score(self) -> float:
-        """The F-measure of the two shares, weighed by the significance."""
-        return 2 * self.confirmed * self.explained / max(self.confirmed + self.explained, 1e-12) * self.significance
+        """The F-measure of the two shares, weighed by the significance and lowered by the
+        run-on (``EdgeEvidence.RUN_ON_WEIGHT``)."""
+        f = 2 * self.confirmed * self.explained / max(self.confirmed + self.explained, 1e-12)
+        return f * self.significance * max(1.0 - EdgeEvidence.RUN_ON_WEIGHT * self.run_on, 0.0)
 
 
 def beyond_chance(confirmed: float, expected: float, length: float) -> float:
@@ -208,6 +213,11 @@ class EdgeEvidence:
         pose has few edge pixels to show, so it must match cleanly to be believed; a pose
         far too large finds little of its length confirmed. The score is the F-measure of
         the two shares times the significance (``Shares.score``).
+      - *run-on*: beyond each end of the pose's visible model edges, along them and off
+        every other model edge (``kernels.run_on_kernel``), the share of probe points a like
+        edge confirms, beyond chance as *confirmed*. A pose too small or too far sits on
+        pieces of the part's longer edges, which run on past its ends; occlusion cuts edges
+        short and adds none; clutter only by chance. The score is lowered by it.
 
     Both run hundreds of times per image and only ask whether a distance is within
     ``tolerance``, so none computes distances: with OpenCV's 3x3 chamfer distance
@@ -239,6 +249,15 @@ class EdgeEvidence:
     #: With samples 4 px apart counted as independent, that bounds the chance of the match
     #: by e^-40; chosen on the tuning parts against 320 and 480 (docs/results/verification.md)
     SIGNIFICANT_PIXELS = 160.0
+    #: the run-on's probes reach past each end of a model edge this share of its projected
+    #: length, at least RUN_ON_PROBE[1] and at most RUN_ON_PROBE[2] pixels, for model edges
+    #: at least RUN_ON_MIN_LENGTH long (shorter ones are pieces of curves, their ends joined)
+    RUN_ON_PROBE = (0.25, 6.0, 30.0)
+    RUN_ON_MIN_LENGTH = 10.0
+    #: the score is multiplied by 1 - RUN_ON_WEIGHT x run-on: on the tuning parts right poses
+    #: show a run-on of at most 0.12 (99 % below 0.08), wrong poses too far a median of 0.2
+    #: (docs/results/verification.md)
+    RUN_ON_WEIGHT = 1.0
 
     def __init__(self, edge_map: np.ndarray, gradient_x: np.ndarray, gradient_y: np.ndarray):
         """From Canny's edge map and the image gradient it was found on (``ImageEdges``)."""
@@ -401,14 +420,15 @@ class EdgeEvidence:
                                           soft=soft, soft_tolerance_px=soft_tolerance_px)[0])
 
     def shares_of(self, counts: np.ndarray) -> "Shares":
-        """The ``Shares`` of a pose from its five sums (``counts``)."""
-        length, confirmed, by_chance, seen_edges, explained = counts
+        """The ``Shares`` of a pose from its eight sums (``counts``)."""
+        length, confirmed, by_chance, seen_edges, explained, probes, ran_on, ran_by_chance = counts
         if length <= 0:
             return Shares(0.0, 0.0, 0.0)
         surprise = length * kl_divergence(confirmed / length, by_chance / length)
         return Shares(confirmed=beyond_chance(confirmed, by_chance, length),
                       explained=float(explained / seen_edges) if seen_edges > 0 else 0.0,
-                      significance=1.0 - float(np.exp(-surprise / self.SIGNIFICANT_PIXELS)))
+                      significance=1.0 - float(np.exp(-surprise / self.SIGNIFICANT_PIXELS)),
+                      run_on=beyond_chance(ran_on, ran_by_chance, probes))
 
     def counted_pixels(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float,
                        soft: np.ndarray | None = None, soft_tolerance_px: float | None = None) -> np.ndarray:
@@ -423,7 +443,8 @@ class EdgeEvidence:
     def counts(self, model_px: np.ndarray, spans: np.ndarray, tolerance_px: float, min_margin_px: float,
                min_size_px: float = 0.0, soft: np.ndarray | None = None, soft_tolerance_px: float | None = None,
                labels: np.ndarray | None = None) -> np.ndarray:
-        """(B, 5) ``kernels.pose_evidence_kernel``'s sums for B poses, pose b's segments
+        """(B, 8) ``kernels.pose_evidence_kernel``'s five sums and ``kernels.run_on_kernel``'s
+        three for B poses, pose b's segments
         ``model_px[spans[b]:spans[b + 1]]`` (pixels), those marked ``soft`` looked up within
         ``soft_tolerance_px``; zeros for a pose without segments or spanning less than
         ``min_size_px``; the counted pixels marked in ``labels`` if given (``counted_pixels``)."""
@@ -433,12 +454,16 @@ class EdgeEvidence:
         else:
             tolerances, reach_of = (float(tolerance_px), float(soft_tolerance_px)), np.asarray(soft, np.int64)
         near, chance = self.stacked(tolerances)
-        out = np.zeros((len(spans) - 1, 5))
-        pose_evidence_kernel(model_px, reach_of, np.asarray(spans, np.int64), float(min_size_px), near, chance,
+        spans = np.asarray(spans, np.int64)
+        sums, run_on = np.zeros((len(spans) - 1, 5)), np.zeros((len(spans) - 1, 3))
+        pose_evidence_kernel(model_px, reach_of, spans, float(min_size_px), near, chance,
                              self.row_starts, self.columns, np.array(tolerances), float(min_margin_px),
-                             self.OUTLINE_MARGIN, self.SEEN_CELL, self.SEEN_REACH, out,
+                             self.OUTLINE_MARGIN, self.SEEN_CELL, self.SEEN_REACH, sums,
                              np.zeros((0, 0), np.uint8) if labels is None else labels)
-        return out
+        # probes within a pixel beyond the look-up tolerance of another model edge are that edge's
+        run_on_kernel(model_px, spans, near, chance, *self.RUN_ON_PROBE, self.RUN_ON_MIN_LENGTH, tolerances[0] + 1.0,
+                      run_on)
+        return np.hstack([sums, run_on])
 
     def stacked(self, tolerances: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
         """``near_like`` (as uint8) and ``chance`` of each tolerance stacked, (T, BINS, H + 2,
