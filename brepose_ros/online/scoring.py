@@ -273,11 +273,11 @@ class EdgeEvidence:
         #: warmed with: np.nonzero returns strided views)
         self.row_starts, self.columns = np.searchsorted(rows, np.arange(self.shape[0] + 1)), np.ascontiguousarray(cols)
         self.directions = np.mod(np.arctan2(dy, dx) + np.pi / 2, np.pi)
-        bins = (self.directions / np.pi * self.BINS).astype(int) % self.BINS
+        self._bins = (self.directions / np.pi * self.BINS).astype(int) % self.BINS
         #: per direction bin b, the edge pixels of bins b - 1, b and b + 1
         self.like_edges = np.zeros((self.BINS,) + self.shape, np.uint8)
         for step in (-1, 0, 1):
-            self.like_edges[(bins + step) % self.BINS, rows, cols] = 1
+            self.like_edges[(self._bins + step) % self.BINS, rows, cols] = 1
         self._near_like = {}  # tolerance -> like_edges dilated by its chamfer ball
         self._chance = {}  # tolerance -> chance()
         self._stacked = {}  # tolerances -> stacked()
@@ -386,14 +386,16 @@ class EdgeEvidence:
     def _nearest_bin(self, b: int, labels: np.ndarray) -> np.ndarray | None:
         """Bin ``b``'s labels written into ``labels[b]`` (int32) and its label -> (x, y) table;
         None without pixels (``labels[b]`` left as it was)."""
-        like = self.like_edges[b]
-        rows, cols = np.nonzero(like)
-        if not len(rows):
+        # the bin's like pixels in row-major order, as OpenCV numbers them 1, 2, ... (a scan of
+        # the whole map by np.nonzero held the GIL 0.75 ms a bin)
+        like = self.pixels[(self._bins - b + 1) % self.BINS <= 2]
+        if not len(like):
             return None
         # written in place: an array per bin, alive until the offsets are known, cost more in page faults
-        cv2.distanceTransformWithLabels(1 - like, cv2.DIST_L2, 5, labels=labels[b], labelType=cv2.DIST_LABEL_PIXEL)
-        table = np.zeros((labels[b].max() + 1, 2))  # label -> (x, y) of its pixel
-        table[labels[b, rows, cols]] = np.stack([cols, rows], axis=1)
+        cv2.distanceTransformWithLabels(1 - self.like_edges[b], cv2.DIST_L2, 5, labels=labels[b],
+                                        labelType=cv2.DIST_LABEL_PIXEL)
+        table = np.zeros((len(like) + 1, 2))  # label -> (x, y) of its pixel; label 0: none
+        table[1:] = like
         return table
 
     def _nearest_tables(self, labels: np.ndarray, per_bin: list) -> tuple[np.ndarray, np.ndarray]:
