@@ -4,9 +4,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from brepose_ros.online.image_edges import (EdgeParams, canny_edges, canny_thresholds, extract_segments, gradients,
                                             merge_segments, to_gray)
+from brepose_ros.online.kernels import connected_labels
 
 BACKGROUND = 110.0
 SIZE = (480, 640)
@@ -171,6 +174,20 @@ def test_merge_of_a_thousand_pieces_finds_every_line():
     assert len(pieces) >= 1000
     assert len(merged) == 100
     assert np.linalg.norm(merged[:, 1] - merged[:, 0], axis=1) == pytest.approx(400, abs=2)
+
+
+def test_merge_groups_pieces_as_scipys_connected_components_would():
+    """kernels.connected_labels, the merge's grouping of joined pieces, numbers the
+    components of random graphs (isolated nodes, repeated and self edges) as scipy does."""
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        n = int(rng.integers(1, 60))
+        first, second = rng.integers(0, n, size=(2, int(rng.integers(0, 2 * n))))
+        graph = coo_matrix((np.ones(len(first)), (first, second)), shape=(n, n))
+        count, labels = connected_labels(n, first, second)
+        expected_count, expected = connected_components(graph, directed=False)
+        assert count == expected_count
+        assert np.array_equal(labels, expected)
 
 
 @pytest.mark.parametrize("noise", [4.0, 12.0])

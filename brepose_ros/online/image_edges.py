@@ -27,10 +27,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-
 from ..params import EdgeParams
+from .kernels import connected_labels
 
 #: median / scale of a Rayleigh distribution: the gradient magnitude of pure Gaussian noise
 _RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
@@ -264,9 +262,7 @@ def _merge_once(segments: np.ndarray, params: EdgeParams) -> np.ndarray:
     i, j, longer, shorter = i[near], j[near], longer[near], shorter[near]
     joins = _joins(segments[shorter], unit[shorter], sin_tolerance[shorter],
                    segments[longer, 0], unit[longer], 0.0, lengths[longer], params)
-    n = len(segments)
-    graph = coo_matrix((np.ones(joins.sum()), (i[joins], j[joins])), shape=(n, n))
-    groups, label = connected_components(graph, directed=False)
+    groups, label = connected_labels(len(segments), i[joins], j[joins])
 
     # the usual group is one straight edge: every piece fits the group's line, no growing needed
     centre, axis = _fit_lines(label, groups, segments.mean(axis=1), lengths, unit)
