@@ -9,7 +9,7 @@ from scipy.sparse.csgraph import connected_components
 
 from brepose_ros.online.image_edges import (EdgeParams, canny_edges, canny_thresholds, extract_segments, gradients,
                                             merge_segments, to_gray)
-from brepose_ros.online.kernels import connected_labels
+from brepose_ros.online.kernels import connected_labels, median_of_every_other, scaled_int16
 
 BACKGROUND = 110.0
 SIZE = (480, 640)
@@ -188,6 +188,21 @@ def test_merge_groups_pieces_as_scipys_connected_components_would():
         expected_count, expected = connected_components(graph, directed=False)
         assert count == expected_count
         assert np.array_equal(labels, expected)
+
+
+def test_canny_inputs_compiled_are_numpys():
+    """The compiled steps before Canny (kernels.median_of_every_other, kernels.scaled_int16)
+    equal numpy's to the bit: gradient magnitudes of a noisy image and maps of odd and even
+    sizes with many equal values, derivatives on exact halves (rounded to even)."""
+    magnitude = _gradient(draw(SCENE, GREYS, noise=4.0))
+    assert float(median_of_every_other(magnitude)) == float(np.median(magnitude[::2, ::2]))
+    rng = np.random.default_rng(2)
+    for shape in [(1, 1), (3, 5), (6, 4), (33, 17), (40, 40)]:
+        values = np.round(np.abs(rng.normal(0, 8, shape)), 1).astype(np.float32)
+        assert float(median_of_every_other(values)) == float(np.median(values[::2, ::2]))
+        halves = (rng.integers(-4000, 4000, shape) / 32).astype(np.float32)
+        for ours, numpys in zip(scaled_int16(halves, -halves, 16.0), (halves, -halves)):
+            assert np.array_equal(ours, np.round(numpys * 16.0).astype(np.int16))
 
 
 @pytest.mark.parametrize("noise", [4.0, 12.0])

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from ..params import EdgeParams
-from .kernels import connected_labels
+from .kernels import connected_labels, median_of_every_other, scaled_int16
 
 #: median / scale of a Rayleigh distribution: the gradient magnitude of pure Gaussian noise
 _RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
@@ -137,9 +137,10 @@ def canny_thresholds(magnitude: np.ndarray, params: EdgeParams) -> tuple[float, 
     threshold of a few noise units keeps edges that stand out of it however faint. A
     percentile of the magnitude would not do: it marks a fixed share of pixels as edges
     even in a blank image. Every other row and column is plenty for the median and makes
-    it (the slowest part of the Canny stage) three times faster.
+    it three times faster; a compiled selection (``kernels.median_of_every_other``) four
+    times more.
     """
-    noise = float(np.median(magnitude[::2, ::2])) / _RAYLEIGH_MEDIAN
+    noise = float(median_of_every_other(np.ascontiguousarray(magnitude, np.float32))) / _RAYLEIGH_MEDIAN
     high = max(params.canny_noise_factor * noise, params.canny_min_high)
     return params.canny_low_ratio * high, high
 
@@ -176,8 +177,7 @@ def canny_edges(gray: np.ndarray, params: EdgeParams) -> np.ndarray:
 def canny_from_gradients(dx: np.ndarray, dy: np.ndarray, params: EdgeParams) -> np.ndarray:
     """Adaptive Canny on the derivatives of ``gradients``."""
     low, high = canny_thresholds(cv2.magnitude(dx, dy), params)
-    dx16 = np.round(dx * _DERIVATIVE_SCALE).astype(np.int16)
-    dy16 = np.round(dy * _DERIVATIVE_SCALE).astype(np.int16)
+    dx16, dy16 = scaled_int16(dx, dy, _DERIVATIVE_SCALE)
     return cv2.Canny(dx16, dy16, low * _DERIVATIVE_SCALE, high * _DERIVATIVE_SCALE, L2gradient=True)
 
 

@@ -284,6 +284,9 @@ def warm_up() -> None:
                           np.zeros((1, 2)), 3.0, 12, 3, np.zeros((1, 6, 6)), np.zeros(1))
     nearest_views_kernel(R, t, np.eye(3), np.zeros(3), np.zeros(1, np.int64))
     connected_labels(2, np.zeros(1, np.int64), np.ones(1, np.int64))
+    gradient = np.ones((4, 4), np.float32)
+    scaled_int16(gradient, gradient, 16.0)
+    median_of_every_other(gradient)
     near, row_starts, columns = np.zeros((1, 8, 6, 6), np.uint8), np.zeros(5, np.int64), np.zeros(0, np.int64)
     pose_evidence_kernel(segments * 3.0, np.zeros(2, np.int64), np.array([0, 2]), 1.0, near,
                          np.zeros((1, 8, 6, 6), np.float32), row_starts, columns, np.ones(1), 1.0, 0.2, 2, 1,
@@ -815,3 +818,56 @@ def connected_labels(n: int, first: np.ndarray, second: np.ndarray) -> tuple[int
         else:
             labels[v] = labels[r]
     return count, labels
+
+
+@njit(nogil=True, cache=True)
+def scaled_int16(dx: np.ndarray, dy: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """``np.round(d * scale).astype(np.int16)`` of two float32 maps (Canny's derivatives), in
+    one pass: numpy's three passes each held the GIL 0.5 ms an image."""
+    s = np.float32(scale)
+    out_x, out_y = np.empty(dx.shape, np.int16), np.empty(dy.shape, np.int16)
+    for i in range(dx.shape[0]):
+        for j in range(dx.shape[1]):
+            out_x[i, j] = np.int16(np.rint(dx[i, j] * s))  # rint rounds half to even, as np.round
+            out_y[i, j] = np.int16(np.rint(dy[i, j] * s))
+    return out_x, out_y
+
+
+@njit(nogil=True, cache=True)
+def median_of_every_other(magnitude: np.ndarray) -> np.float32:
+    """``np.median(magnitude[::2, ::2])`` of a non-negative float32 map, to the bit: its middle
+    values picked by their bit patterns, which order as non-negative floats do, in two
+    16-bit counting passes (np.median's partition took 0.8 ms an image)."""
+    sub = magnitude[::2, ::2]
+    keys = np.empty(sub.size, np.float32)
+    for i in range(sub.shape[0]):
+        for j in range(sub.shape[1]):
+            keys[i * sub.shape[1] + j] = sub[i, j]
+    bits, n = keys.view(np.uint32), len(keys)
+    middle = np.empty(2, np.uint32)
+    middle[1] = _kth_smallest(bits, n // 2)
+    middle[0] = middle[1] if n % 2 else _kth_smallest(bits, n // 2 - 1)
+    values = middle.view(np.float32)
+    # np.median's mean of the two: their float32 sum halved
+    return values[1] if n % 2 else np.float32(values[0] + values[1]) / np.float32(2.0)
+
+
+@njit(nogil=True, cache=True)
+def _kth_smallest(keys: np.ndarray, k: int) -> np.uint32:
+    """The k-th smallest (from 0) of uint32 keys: its high 16 bits by counting, then its low."""
+    counts = np.zeros(1 << 16, np.int64)
+    for key in keys:
+        counts[key >> 16] += 1
+    high = 0
+    while k >= counts[high]:
+        k -= counts[high]
+        high += 1
+    counts[:] = 0
+    for key in keys:
+        if key >> 16 == high:
+            counts[key & 0xFFFF] += 1
+    low = 0
+    while k >= counts[low]:
+        k -= counts[low]
+        low += 1
+    return np.uint32((high << 16) | low)
