@@ -314,8 +314,8 @@ class EdgeEvidence:
         """Direction bin ``b``'s rows of the maps ``near`` and ``chance`` (tolerance, bin, ...) and
         of the nearest-edge ``labels``; its piece of the table (``_nearest_bin``)."""
         for i, t in enumerate(tolerances):
-            near[i, b, 1:-1, 1:-1] = self._dilated(b, t)
-            chance[i, b, 1:-1, 1:-1] = self._boxed(near[i, b, 1:-1, 1:-1])
+            self._dilated(b, t, near[i, b, 1:-1, 1:-1])
+            self._boxed(near[i, b, 1:-1, 1:-1], chance[i, b, 1:-1, 1:-1])
         return self._nearest_bin(b, labels)
 
     def orientation_bin(self, segments: np.ndarray) -> np.ndarray:
@@ -365,13 +365,14 @@ class EdgeEvidence:
         if tolerance_px not in self._near_like:
             near = np.zeros((self.BINS, self.shape[0] + 2, self.shape[1] + 2), np.uint8)
             for b in range(self.BINS):
-                near[b, 1:-1, 1:-1] = self._dilated(b, tolerance_px)
+                self._dilated(b, tolerance_px, near[b, 1:-1, 1:-1])
             self._near_like[tolerance_px] = near.view(bool)  # 0/1 bytes, dilated from 0/1
         return self._near_like[tolerance_px]
 
-    def _dilated(self, b: int, tolerance_px: float) -> np.ndarray:
-        """Bin ``b``'s like edges dilated by the chamfer ball of ``tolerance_px`` (uint8)."""
-        return cv2.dilate(self.like_edges[b], chamfer_ball(tolerance_px))
+    def _dilated(self, b: int, tolerance_px: float, out: np.ndarray) -> None:
+        """Bin ``b``'s like edges dilated by the chamfer ball of ``tolerance_px``, written into
+        ``out`` (uint8, a view into the stacked maps: OpenCV writes there, no copy)."""
+        cv2.dilate(self.like_edges[b], chamfer_ball(tolerance_px), dst=out)
 
     def nearest_like(self) -> tuple[np.ndarray, np.ndarray]:
         """Per direction bin and pixel, the nearest pixel of ``like_edges``: (BINS, H, W)
@@ -490,15 +491,16 @@ class EdgeEvidence:
             near = self.near_like(tolerance_px).view(np.uint8)
             chance = np.zeros(near.shape, np.float32)
             for b in range(self.BINS):
-                chance[b, 1:-1, 1:-1] = self._boxed(near[b, 1:-1, 1:-1])
+                self._boxed(near[b, 1:-1, 1:-1], chance[b, 1:-1, 1:-1])
             self._chance[tolerance_px] = chance
         return self._chance[tolerance_px]
 
-    def _boxed(self, near: np.ndarray) -> np.ndarray:
+    def _boxed(self, near: np.ndarray, out: np.ndarray) -> None:
         """The share of set pixels of one bin's ``near_like`` map (uint8, no border) in the
-        ``CHANCE_WINDOW`` square about each pixel."""
-        return cv2.boxFilter(near.astype(np.float32), -1, (self.CHANCE_WINDOW, self.CHANCE_WINDOW),
-                             borderType=cv2.BORDER_REFLECT)
+        ``CHANCE_WINDOW`` square about each pixel, written into ``out`` (float32, a view like
+        ``_dilated``'s)."""
+        cv2.boxFilter(near.astype(np.float32), -1, (self.CHANCE_WINDOW, self.CHANCE_WINDOW), dst=out,
+                      borderType=cv2.BORDER_REFLECT)
 
 
 @lru_cache(maxsize=16)
