@@ -6,7 +6,9 @@ Each of the 8 objects' scanned PLY meshes (mm) is compiled into an aspect graph 
 data/bench/real_lmo/graphs/, git-ignored), then every target of test_targets_bop19.json whose
 frame is among the 25 is estimated in the 640 x 480 colour image as the node gets it (BGR).
 As in the BOP protocol a target is known to be in the image, so the best pose is kept
-whatever its score (``pose.min_score`` 0); the score is reported beside it.
+whatever its score and confidence (``pose.min_score`` and ``pose.min_confidence`` 0); the
+score is reported beside it. Only a pose outside a known working range (``--known-range``)
+is not found, and counts as wrong.
 
 A pose is correct when ADD(-S) < 0.1 of the object's diameter (models_info.json; ADD-S for
 the objects with symmetries there: eggbox and glue). Recall is reported per object and
@@ -54,6 +56,12 @@ sizes and mutual occlusions without real light, clutter or sensor, as the contro
 grown to twice its size, at least 160 px): an oracle for detection, measuring matching
 and pose alone. ``--min-margin-px`` sets ``pose.min_margin_pixels`` for the run: the floor
 of the margin around a pose inside which the score counts unexplained edge pixels.
+``--known-range RATIO`` gives the estimator a known working distance
+(``pose.min_distance`` / ``max_distance``): the median distance of the frame's objects'
+model origins (BOP models are centred) divided and multiplied by RATIO, as a camera that knows
+its distance to the table within -20 / +25 % for 1.25 (a robot's camera pose, a fixed cell);
+the same range for every object of the frame, not any target's own depth. Targets whose own
+distance lies outside it are counted (``targets outside it``): the estimator cannot find them.
 ``--overlays N`` writes N successes and N failures per object as PNGs to
 data/bench/real_lmo/overlays/ (estimate green or red, truth blue); every target's figures
 go to data/bench/real_lmo/results*.json.
@@ -188,6 +196,16 @@ def refined_from_near_truth(refiner: PoseRefiner, target: Target, frame: Frame, 
     return [(R[0], t[0]), (climbed.R, climbed.t), (polished.R, polished.t)]
 
 
+def known_range(targets: list[Target], frame: int, ratio: float | None) -> tuple[float, float]:
+    """The working range (``pose.min_distance``, ``max_distance``) of ``--known-range`` in
+    one frame, metres: the median distance of its objects divided and multiplied by ``ratio``
+    (0, 0: unknown, without the option)."""
+    if ratio is None:
+        return 0.0, 0.0
+    median = float(np.median([np.linalg.norm(t.t) for t in targets if t.frame == frame]))
+    return median / ratio, median * ratio
+
+
 def projection_px(model: ModelPoints, camera: Camera, R, t, target: Target, symmetric: bool) -> float:
     """Mean image distance of the model's points under (R, t) and the true pose, pixels (to
     the nearest true one for a symmetric object, as ADD-S)."""
@@ -214,12 +232,16 @@ def main(argv=None) -> int:
     parser.add_argument("--min-margin-px", type=float, help="the score's margin floor (default: the estimator's)")
     parser.add_argument("--light", action="store_true", help="also highlights, contrast and Canny thresholds")
     parser.add_argument("--render", action="store_true", help="renderings of the true poses instead of the photos")
+    parser.add_argument("--known-range", type=float, metavar="RATIO",
+                        help="known working distance: the frame's median object distance / and x RATIO (> 1)")
     args = parser.parse_args(argv)
+    if args.known_range is not None and args.known_range <= 1:
+        parser.error("--known-range must be above 1")
     if not LMO.is_dir():
         print(f"error: {LMO} is not there (../shared beside the clone)", file=sys.stderr)
         return 2
     params = EstimatorParams.load(args.params) if args.params else EstimatorParams()
-    params = params.with_flat({"pose.min_score": 0.0} | (
+    params = params.with_flat({"pose.min_score": 0.0, "pose.min_confidence": 0.0} | (
         {"pose.min_margin_pixels": args.min_margin_px} if args.min_margin_px is not None else {}))
     camera = Camera.load(LMO / "camera.json")
     info = json.loads((LMO / "models" / "models_info.json").read_text())
@@ -231,6 +253,7 @@ def main(argv=None) -> int:
         images = {f: render(camera, [Placed(meshes[t.obj], t.R, t.t) for t in targets if t.frame == f],
                             background=RENDER_BACKGROUND, color=True).image for f in frames}
     frame_of = {f: Frame.of(detect_edges(images[f], params.edges), camera) for f in frames}
+    working_range = {f: known_range(targets, f, args.known_range) for f in frames}
     tolerance = params.pose.inlier_pixels
     overlays = OUT / ("overlays" + ("_render" if args.render else "") + ("_crop" if args.crop else ""))
     overlays.mkdir(parents=True, exist_ok=True)
@@ -247,10 +270,15 @@ def main(argv=None) -> int:
             image, cam = images[target.frame], camera
             if args.crop:
                 image, cam = crop(image, camera, target.box)
+            near_end, far_end = working_range[target.frame]
+            if args.known_range:
+                estimator.params = params.with_flat({"pose.min_distance": near_end, "pose.max_distance": far_end})
             started = time.perf_counter()
             estimate = estimator.estimate(image, cam)
             seconds = time.perf_counter() - started
-            distance = (model.add_s if symmetric else model.add)(estimate.R, estimate.t, target.R, target.t)
+            found = estimate.R is not None  # not found only outside a known working range
+            distance = (model.add_s if symmetric else model.add)(estimate.R, estimate.t, target.R, target.t) \
+                if found else np.inf
             error = distance * model.diameter / diameter
             # the truth scored on what the estimator saw: the whole image or the crop
             seen = Frame.of(detect_edges(image, params.edges), cam) if args.crop else frame_of[target.frame]
@@ -263,8 +291,9 @@ def main(argv=None) -> int:
             near_px = [projection_px(model, cam, R, t, target, symmetric) for R, t in stages]
             near_score = float(pose_scores(graph, stages[-1][0][None], stages[-1][1][None], seen, params.pose)[0])
             near, near_projected = near_add[-1], near_px[-1]
-            projected = projection_px(model, cam, estimate.R, estimate.t, target, symmetric)
+            projected = projection_px(model, cam, estimate.R, estimate.t, target, symmetric) if found else np.inf
             rows.append(dict(obj=obj, frame=target.frame, visible=target.visible, error=error,
+                             R=estimate.R.ravel().tolist() if found else None, t=estimate.t.tolist() if found else None,
                              correct=error < ADD_THRESHOLD, score=estimate.score, truth=truth,
                              projected=projected, projected_correct=projected < PROJECTION_PX,
                              near_correct=near < ADD_THRESHOLD, near_projected_correct=near_projected < PROJECTION_PX,
@@ -272,16 +301,18 @@ def main(argv=None) -> int:
                              support=support(edge_evidence(image, params.edges, False), truth_px, tolerance),
                              explained=seen.evidence.shares(truth_px, tolerance,
                                                             params.pose.min_margin_pixels).explained,
-                             size=size, seconds=seconds,
+                             size=size, seconds=seconds, in_range=bool(
+                                 near_end <= np.linalg.norm(target.t) <= far_end or far_end == 0),
                              colour_support=support(edge_evidence(image, params.edges, True), truth_px, tolerance)))
             correct = rows[-1]["correct"]
             if saved[correct] < args.overlays:
                 saved[correct] += 1
                 picture = draw_overlay(image, estimate, f"{NAMES[obj]} {target.frame}")
-                estimated_px = cam.project_model(graph.seg_3d[graph.visible_segments(estimate.R, estimate.t)],
-                                                 estimate.R, estimate.t)
                 draw_segments(picture, truth_px, TRUTH_COLOUR, 1)
-                draw_segments(picture, estimated_px, CORRECT_COLOUR if correct else WRONG_COLOUR, 1)
+                if found:
+                    estimated_px = cam.project_model(graph.seg_3d[graph.visible_segments(estimate.R, estimate.t)],
+                                                     estimate.R, estimate.t)
+                    draw_segments(picture, estimated_px, CORRECT_COLOUR if correct else WRONG_COLOUR, 1)
                 name = f"{NAMES[obj]}_{target.frame:06d}_{'ok' if correct else 'fail'}.png"
                 cv2.imwrite(str(overlays / name), picture)
             print(f"{NAMES[obj]:12s} {target.frame:5d} vis {target.visible:.2f} size {size:4.0f} px  "
@@ -296,6 +327,7 @@ def main(argv=None) -> int:
         light_report(targets, images, meshes, camera, params, args.objects)
     run = "".join([f"_{args.params.stem}" if args.params else "", "_crop" if args.crop else "",
                    "_render" if args.render else "",
+                   f"_range{args.known_range:g}" if args.known_range else "",
                    f"_margin{args.min_margin_px:g}" if args.min_margin_px is not None else ""])
     (OUT / f"results{run}.json").write_text(json.dumps(rows, indent=1))
     return 0
@@ -310,6 +342,10 @@ def report(rows: list[dict], args, params: EstimatorParams) -> None:
 
     mode = ("renderings" if args.render else "photos") + (", oracle crop" if args.crop else ", whole image")
     mode += f", params {args.params}" if args.params else ""
+    if args.known_range:
+        mode += (f", known range x/{args.known_range:g} about the frame's median distance "
+                 f"({sum(not r['in_range'] for r in rows)} targets outside it, "
+                 f"{sum(r['R'] is None for r in rows)} not found: no pose in it)")
     mode += f", margin floor {params.pose.min_margin_pixels:g} px, {'colour' if params.edges.colour else 'grey'} edges"
     print(f"\nLM-O test scene 2, {len(rows)} BOP19 targets in {len({r['frame'] for r in rows})} frames, "
           f"{mode}, {args.step_deg:g} deg views")
