@@ -134,14 +134,17 @@ class ResponseMaps:
 
     @classmethod
     def of(cls, evidence: EdgeEvidence, factor: int, spread: int, pad: int,
-           box: tuple[int, int, int, int] | None = None) -> "ResponseMaps":
-        """The maps of the edge pixels, only those within ``box`` (x0, y0, x1, y1 pixels) if given."""
+           box: tuple[int, int, int, int] | None = None, pool: WorkerPool = SERIAL) -> "ResponseMaps":
+        """The maps of the edge pixels, only those within ``box`` (x0, y0, x1, y1 pixels) if
+        given; one job per bin on the ``pool``'s threads (OpenCV's dilations, which release the GIL)."""
         h, w = evidence.shape
         hc, wc = -(-h // factor), -(-w // factor)
         block = np.ones((factor, factor), np.uint8)
         kernel = np.ones((2 * spread + 1, 2 * spread + 1), np.uint8)
         maps = np.zeros((BINS, hc + 2 * pad, wc + 2 * pad), np.uint8)
-        for b, like in enumerate(evidence.like_edges):
+
+        def of_bin(b: int) -> None:
+            like = evidence.like_edges[b]
             if box is not None:
                 x0, y0, x1, y1 = box
                 like = np.zeros_like(like)
@@ -150,6 +153,8 @@ class ResponseMaps:
             # block's first pixel, sampled there (a numpy reduction over the blocks took 30x longer)
             pooled = cv2.dilate(like, block, anchor=(0, 0))[::factor, ::factor]
             maps[b, pad:pad + hc, pad:pad + wc] = cv2.dilate(pooled, kernel)
+
+        pool.map(of_bin, range(BINS))
         return cls(maps, pad, factor, (hc, wc), block_bounds(maps))
 
     def chance(self, window: int) -> np.ndarray:
@@ -159,15 +164,19 @@ class ResponseMaps:
 
     def chances(self, windows: list[int], pool: WorkerPool = SERIAL) -> np.ndarray:
         """(S, BINS, H, W): ``chance`` of each window, one job per bin on the ``pool``'s threads
-        (OpenCV's box filters, which release the GIL)."""
+        (OpenCV's box filters, which release the GIL), each writing its bin in place (stacking
+        the bins' maps afterwards was a 4 MB copy in the calling thread)."""
         hc, wc = self.shape
+        out = np.empty((len(windows), BINS, hc, wc), np.float32)
 
-        def of_bin(b: int) -> list[np.ndarray]:
+        def of_bin(b: int) -> None:
             cells = self.maps[b].astype(np.float32)
-            return [cv2.boxFilter(cells, -1, (window, window), normalize=True, borderType=cv2.BORDER_CONSTANT)
-                    [self.pad:self.pad + hc, self.pad:self.pad + wc] for window in windows]
+            for s, window in enumerate(windows):
+                box = cv2.boxFilter(cells, -1, (window, window), normalize=True, borderType=cv2.BORDER_CONSTANT)
+                out[s, b] = box[self.pad:self.pad + hc, self.pad:self.pad + wc]
 
-        return np.stack(pool.map(of_bin, range(BINS)), axis=1)
+        pool.map(of_bin, range(BINS))
+        return out
 
 
 def block_bounds(maps: np.ndarray) -> np.ndarray:
@@ -403,7 +412,7 @@ class TemplateSearch:
         factor = p.coarse_factor
         sizes = self.sizes(frame, p, distances) if sizes is None else sizes
         pad = int(np.ceil(sizes[-1] / factor / 2)) + p.spread + 1
-        maps = ResponseMaps.of(frame.evidence, factor, p.spread, pad, box)
+        maps = ResponseMaps.of(frame.evidence, factor, p.spread, pad, box, pool)
         chance = maps.chances([max(3, int(round(d / factor)) | 1) for d in sizes], pool)
         dx, dy, bins, view, angle, size, size_index = self._coarse_templates(p.angles, sizes, factor)
         n = len(dx)
