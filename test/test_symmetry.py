@@ -315,6 +315,32 @@ def test_a_near_tie_between_finalists_goes_to_the_pose_its_distinguishing_edges_
     assert check_rivals([elsewhere, Candidate(score, R, t, None)], graph, frame, p.pose) is elsewhere
 
 
+@pytest.mark.slow
+def test_a_pose_too_far_anchored_at_a_corner_of_the_rendered_plate_runs_on_and_the_truth_does_not(plate_graph):
+    """The score's run-on (``Shares.run_on``) on the rendered notched plate: the model 1.5x as
+    far, placed so that an outer corner of the plate projects where it truly is (its edges
+    from there lie on pieces of the plate's), finds the plate's edges running on past its
+    model edges' ends; the truth finds none, and neither does the model 1.5x as near there
+    (too large: its edges run past the plate's, which the confirmed share sees)."""
+    from brepose_ros.online.frame import Frame
+    from brepose_ros.online.image_edges import detect_edges
+    from brepose_ros.online.scoring import pose_shares
+    from brepose_ros.params import EstimatorParams
+
+    graph, step = plate_graph
+    image, camera, R, t = plate_image(step)
+    p = EstimatorParams()
+    frame = Frame.of(detect_edges(image, p.edges), camera)
+    truth = pose_shares(graph, R, t, frame, p.pose)[0]
+    assert truth.run_on < 0.01 and truth.score > 0.9
+    ends = graph.seg_3d[graph.visible_segments(R, t)].reshape(-1, 3)
+    centre = camera.project_model(graph.model_center[None], R, t)[0]
+    corner = ends[np.argmax(np.linalg.norm(camera.project_model(ends, R, t) - centre, axis=1))]
+    far, near = (pose_shares(graph, R, f * (R @ corner + t) - R @ corner, frame, p.pose)[0] for f in (1.5, 1 / 1.5))
+    assert far.run_on > 0.08 and far.score < truth.score - 0.5
+    assert near.run_on < 0.01
+
+
 def test_an_ambiguous_pose_says_so_in_the_overlay_caption():
     from brepose_ros.evaluation.overlay import caption
     from brepose_ros.online.estimator import Estimate
