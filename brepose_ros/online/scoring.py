@@ -303,7 +303,7 @@ class EdgeEvidence:
         """Keep the maps ``bin_jobs`` filled and the nearest-edge table of its jobs' results."""
         tolerances, near, chance, labels = self._filling
         with self._nearest_lock:
-            self._nearest_like = self._nearest_tables(labels, nearest_pieces)
+            self._nearest_like = labels, self._nearest_table(nearest_pieces)
         for i, t in enumerate(tolerances):
             self._near_like[t], self._chance[t] = near[i].view(bool), chance[i]
         if tolerances:
@@ -383,12 +383,13 @@ class EdgeEvidence:
             if self._nearest_like is None:
                 labels = np.zeros((self.BINS,) + self.shape, np.int32)
                 tables = [self._nearest_bin(b, labels) for b in range(self.BINS)]
-                self._nearest_like = self._nearest_tables(labels, tables)
+                self._nearest_like = labels, self._nearest_table(tables)
             return self._nearest_like
 
     def _nearest_bin(self, b: int, labels: np.ndarray) -> np.ndarray | None:
-        """Bin ``b``'s labels written into ``labels[b]`` (int32) and its label -> (x, y) table;
-        None without pixels (``labels[b]`` left as it was)."""
+        """Bin ``b``'s labels written into ``labels[b]`` (int32), as rows of the whole table
+        (``_nearest_table``), and its own label -> (x, y) table; None without pixels
+        (``labels[b]`` left as it was)."""
         # the bin's like pixels in row-major order, as OpenCV numbers them 1, 2, ... (a scan of
         # the whole map by np.nonzero held the GIL 0.75 ms a bin)
         like = self.pixels[(self._bins - b + 1) % self.BINS <= 2]
@@ -397,18 +398,24 @@ class EdgeEvidence:
         # written in place: an array per bin, alive until the offsets are known, cost more in page faults
         cv2.distanceTransformWithLabels(1 - self.like_edges[b], cv2.DIST_L2, 5, labels=labels[b],
                                         labelType=cv2.DIST_LABEL_PIXEL)
+        labels[b] += self._table_starts()[b]  # here, on the bin's thread, not after every bin ran
         table = np.zeros((len(like) + 1, 2))  # label -> (x, y) of its pixel; label 0: none
         table[1:] = like
         return table
 
-    def _nearest_tables(self, labels: np.ndarray, per_bin: list) -> tuple[np.ndarray, np.ndarray]:
-        """``nearest_like`` from the bins' ``_nearest_bin``: their labels offset into one table."""
-        tables = [np.full((1, 2), -1e6)]
-        for b, table in enumerate(per_bin):
-            if table is not None:
-                labels[b] += sum(len(t) for t in tables)
-                tables.append(table)
-        return labels, np.concatenate(tables)
+    def _table_starts(self) -> np.ndarray:
+        """Where each bin's table begins in ``_nearest_table``'s: after the far-away row, the
+        tables of the bins before it that have pixels, each as long as its pixels + 1."""
+        per_bin = np.bincount(self._bins, minlength=self.BINS)
+        like = per_bin + np.roll(per_bin, 1) + np.roll(per_bin, -1)  # bins b - 1, b and b + 1
+        rows = np.where(like > 0, like + 1, 0)
+        return 1 + np.cumsum(rows) - rows
+
+    @staticmethod
+    def _nearest_table(per_bin: list) -> np.ndarray:
+        """``nearest_like``'s pixel table: a row far outside the image (label 0 of a bin without
+        pixels), then the bins' ``_nearest_bin`` tables in order."""
+        return np.concatenate([np.full((1, 2), -1e6)] + [table for table in per_bin if table is not None])
 
     @classmethod
     def grown_outline(cls, points: np.ndarray, min_margin_px: float) -> np.ndarray:
