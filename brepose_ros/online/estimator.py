@@ -129,6 +129,7 @@ class Estimator:
         self._hypotheses = TetradHypotheses(graph, self._params.matching)
         self._refiner = PoseRefiner(graph)
         self._pool = WorkerPool(self._params.matching.workers)
+        Frame.warm_up(self._params.edges, self._pool, scored_tolerances(graph, self._params.pose))
         #: pools replaced by a parameter change, closed once no image uses them
         self._retired: list[WorkerPool] = []
         self._lock = threading.Lock()

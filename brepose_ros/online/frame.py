@@ -49,6 +49,16 @@ class Frame:
         return edges, cls._with(edges, camera, evidence)
 
     @classmethod
+    def warm_up(cls, params: EdgeParams, pool: WorkerPool, tolerances: tuple[float, ...]) -> None:
+        """``detect`` once on a drawn 640 x 480 image (a lighter rectangle on grey): OpenCV's
+        and numpy's first calls at a camera image's size, and the ``pool``'s threads, cost the
+        first image about 10 ms of edges otherwise, a third of a clean image (at most 2x the
+        steady state is the node's target; docs/results/latency.md)."""
+        image = np.full((480, 640), 60, np.uint8)
+        image[120:360, 160:480] = 200
+        cls.detect(image, Camera(500.0, 500.0, 320.0, 240.0, 640, 480), params, pool, tolerances)
+
+    @classmethod
     def _with(cls, edges: ImageEdges, camera: Camera, evidence: EdgeEvidence) -> "Frame":
         return cls(segments_px=edges.segments, segments_n=camera.undistort(edges.segments),
                    refine_segments_n=camera.undistort(edges.refine_segments), camera=camera,
