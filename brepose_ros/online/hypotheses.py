@@ -124,14 +124,9 @@ class TetradHypotheses:
 
         The window is the image segments whose midpoints lie within ``window`` times the
         seed's part radius of its centre; a seed with fewer than ``MIN_REGION_SEGMENTS``
-        there gives nothing. One task per seed on the threads, its window and its matching
-        (``match`` of its one job): the windows' numpy steps of one seed run beside another's
-        compiled matching, where all windows were cut before the first matching."""
-        def matched(seed: Hypothesis) -> list[Hypothesis]:
-            job = self._seed_job(seed, frame, window, p)
-            return [] if job is None else self._match_batch([job], p)
-
-        return [h for hypotheses in pool.map(matched, seeds) for h in hypotheses]
+        there gives nothing."""
+        jobs = [job for job in (self._seed_job(seed, frame, window, p) for seed in seeds) if job is not None]
+        return self.match(jobs, p, pool)
 
     def _seed_job(self, seed: Hypothesis, frame: Frame, window: float, p: MatchParams) -> Job | None:
         """The seed's window as a region normalised so that the seed's view, normalised as
