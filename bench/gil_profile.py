@@ -74,24 +74,17 @@ FRAME = re.compile(r"^(?P<function>.+?) \((?P<file>[^():]+)(?::\d+)?\)$")
 
 def child(args) -> None:
     """Run the estimator over the images ``repeats`` times (what py-spy samples)."""
-    import cv2
 
-    from bench.accuracy import CONDITIONS, step_file
+    from bench.accuracy import step_file
     from bench.graphs import cached_graph_path
-    from bench.latency import SCENES, with_workers
+    from bench.latency import latency_scene, with_workers
     from brepose_ros.aspect_graph import AspectGraph
     from brepose_ros.online.estimator import Estimator
-    from brepose_ros.scene_folder import load_scene
-    from brepose_ros.synthetic.scenes import SceneConfig, generate_scene
     from brepose_ros.viewsphere import fibonacci_step
 
     cache = REPO / "data" / "bench"
     step = step_file(args.part, cache)
-    folder = cache / f"scene_{step.stem}_latency_{args.child}_{args.n}"
-    if not (folder / "gt.json").exists():
-        generate_scene(step, folder, args.n, seed=7, config=SceneConfig(**CONDITIONS[SCENES[args.child]]))
-    scene = load_scene(folder)
-    images = [cv2.imread(str(e.path), cv2.IMREAD_UNCHANGED) for e in scene.entries]
+    scene, images = latency_scene(step, cache, args.child, args.n)
     graph = AspectGraph.load(cached_graph_path(step, cache, fibonacci_step(args.views[0]),
                                                label=f"{args.views[0]}views"))
     estimator = Estimator(graph, with_workers(args.workers))

@@ -157,6 +157,16 @@ def start_row(path: Path, scene, images, workers: int) -> str:
             f"{peak:.0f} |")
 
 
+def latency_scene(step: Path, cache: Path, name: str, n: int) -> tuple:
+    """The cached latency scene ``name`` (a key of ``SCENES``) of ``n`` images, made on first
+    use, and its images read."""
+    folder = cache / f"scene_{step.stem}_latency_{name}_{n}"
+    if not (folder / "gt.json").exists():
+        generate_scene(step, folder, n, seed=7, config=SceneConfig(**CONDITIONS[SCENES[name]]))
+    scene = load_scene(folder)
+    return scene, [cv2.imread(str(e.path), cv2.IMREAD_UNCHANGED) for e in scene.entries]
+
+
 def load_average() -> str:
     """The machine's load average (1, 5, 15 min) to print beside a table: the ratios hold
     under load, the absolute times do not."""
@@ -180,13 +190,7 @@ def main(argv=None) -> int:
     cache = REPO / "data" / "bench"
     cache.mkdir(parents=True, exist_ok=True)
     step = step_file(args.part, cache)
-    scenes = {}
-    for name in args.scenes:
-        folder = cache / f"scene_{step.stem}_latency_{name}_{args.n}"
-        if not (folder / "gt.json").exists():
-            generate_scene(step, folder, args.n, seed=7, config=SceneConfig(**CONDITIONS[SCENES[name]]))
-        scene = load_scene(folder)
-        scenes[name] = (scene, [cv2.imread(str(e.path), cv2.IMREAD_UNCHANGED) for e in scene.entries])
+    scenes = {name: latency_scene(step, cache, name, args.n) for name in args.scenes}
     paths = {views: cached_graph_path(step, cache, fibonacci_step(views), label=f"{views}views")
              for views in args.views}
     if args.start_only:  # the child process of the start table

@@ -23,17 +23,14 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import CONDITIONS, step_file  # noqa: E402
+from bench.accuracy import step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
-from bench.latency import SCENES  # noqa: E402
+from bench.latency import SCENES, latency_scene  # noqa: E402
 from brepose_ros.ros.bags import write_bag  # noqa: E402
-from brepose_ros.scene_folder import load_scene  # noqa: E402
-from brepose_ros.synthetic.scenes import SceneConfig, generate_scene  # noqa: E402
 from brepose_ros.viewsphere import fibonacci_step  # noqa: E402
 
 SCRIPTS = REPO / "launch_free_scripts"
@@ -86,17 +83,13 @@ def main(argv=None) -> int:
     cache = REPO / "data" / "bench"
     step = step_file(args.part, cache)
     graph = cached_graph_path(step, cache, fibonacci_step(args.views), label=f"{args.views}views")
-    scene_folder = cache / f"scene_{step.stem}_latency_{args.scene}_{args.n}"
-    if not (scene_folder / "gt.json").exists():
-        generate_scene(step, scene_folder, args.n, seed=7, config=SceneConfig(**CONDITIONS[SCENES[args.scene]]))
-    scene = load_scene(scene_folder)
+    scene, images = latency_scene(step, cache, args.scene, args.n)
     with tempfile.TemporaryDirectory(prefix="brepose_partitioned_bench_") as tmp:
         folder = Path(tmp)
         graphs = []
         for k in range(args.parts):
             graphs.append(folder / f"part{k}.brepose.npz")
             shutil.copy(graph, graphs[-1])
-        images = (cv2.imread(str(e.path), cv2.IMREAD_UNCHANGED) for e in scene.entries)
         write_bag(folder / "bag", images, scene.camera, rate=10.0)
         results = {k: [] for k in args.processes}
         for r in range(args.repeats):

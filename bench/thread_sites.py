@@ -25,19 +25,16 @@ import traceback
 from collections import defaultdict
 from pathlib import Path
 
-import cv2
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import CONDITIONS, step_file  # noqa: E402
+from bench.accuracy import step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
-from bench.latency import SCENES, load_average, with_workers  # noqa: E402
+from bench.latency import SCENES, latency_scene, load_average, with_workers  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.online import workers  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
-from brepose_ros.scene_folder import load_scene  # noqa: E402
-from brepose_ros.synthetic.scenes import SceneConfig, generate_scene  # noqa: E402
 from brepose_ros.viewsphere import fibonacci_step  # noqa: E402
 
 
@@ -108,11 +105,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     cache = REPO / "data" / "bench"
     step = step_file(args.part, cache)
-    folder = cache / f"scene_{step.stem}_latency_{args.scene}_{args.n}"
-    if not (folder / "gt.json").exists():
-        generate_scene(step, folder, args.n, seed=7, config=SceneConfig(**CONDITIONS[SCENES[args.scene]]))
-    scene = load_scene(folder)
-    images = [cv2.imread(str(e.path), cv2.IMREAD_UNCHANGED) for e in scene.entries]
+    scene, images = latency_scene(step, cache, args.scene, args.n)
     graph = AspectGraph.load(cached_graph_path(step, cache, fibonacci_step(args.views), label=f"{args.views}views"))
     estimator = Estimator(graph, with_workers(args.workers))
     estimator.estimate(images[0], scene.camera)  # the first image is not the steady state

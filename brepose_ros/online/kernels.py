@@ -425,6 +425,21 @@ def grown_outline(points: np.ndarray, min_margin: float, margin_share: float) ->
 
 
 @njit(nogil=True, cache=True)
+def _mark_segments(model_px: np.ndarray, left: int, top: int, marked: np.ndarray) -> None:
+    """Mark a point every pixel along each segment (S, 2, 2) on ``marked``, a grid whose
+    cell (0, 0) is pixel (left, top); points off the grid are skipped."""
+    rows, cols = marked.shape
+    for s in range(model_px.shape[0]):
+        ax, ay = model_px[s, 0, 0], model_px[s, 0, 1]
+        dx, dy = model_px[s, 1, 0] - ax, model_px[s, 1, 1] - ay
+        count = min(max(int(math.ceil(math.sqrt(dx * dx + dy * dy))), 1), 4000)
+        for j in range(count + 1):
+            cx, cy = int(np.rint(ax + j / count * dx)) - left, int(np.rint(ay + j / count * dy)) - top
+            if 0 <= cx < cols and 0 <= cy < rows:
+                marked[cy, cx] = True
+
+
+@njit(nogil=True, cache=True)
 def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray, chance: np.ndarray,
                    row_starts: np.ndarray, columns: np.ndarray, outline: np.ndarray, tolerances: np.ndarray, cell: int,
                    reach: int, out: np.ndarray, labels: np.ndarray) -> None:
@@ -507,14 +522,7 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
     # for the counted edge pixels only, fewer than the points times the disc around each
     radius = int(math.floor(tolerance))
     marked = np.zeros((y1 - y0 + 2 * radius, x1 - x0 + 2 * radius), np.bool_)
-    for s in range(model_px.shape[0]):
-        ax, ay = model_px[s, 0, 0], model_px[s, 0, 1]
-        dx, dy = model_px[s, 1, 0] - ax, model_px[s, 1, 1] - ay
-        count = min(max(int(math.ceil(math.sqrt(dx * dx + dy * dy))), 1), 4000)
-        for j in range(count + 1):
-            cx, cy = int(np.rint(ax + j / count * dx)), int(np.rint(ay + j / count * dy))
-            if x0 - radius <= cx < x1 + radius and y0 - radius <= cy < y1 + radius:
-                marked[cy - y0 + radius, cx - x0 + radius] = True
+    _mark_segments(model_px, x0 - radius, y0 - radius, marked)
     disc = [(ox, oy) for oy in range(-radius, radius + 1) for ox in range(-radius, radius + 1)
             if ox * ox + oy * oy <= tolerance * tolerance]
     # edge pixels inside the convex outline, row by row
@@ -751,14 +759,7 @@ def run_on_kernel(segments: np.ndarray, spans: np.ndarray, near: np.ndarray, cha
             continue
         # the model's own pixels on a grid of the box, to keep probes off other model edges
         marked = np.zeros((y1 - y0, x1 - x0), np.bool_)
-        for s in range(model_px.shape[0]):
-            ax, ay = model_px[s, 0, 0], model_px[s, 0, 1]
-            dx, dy = model_px[s, 1, 0] - ax, model_px[s, 1, 1] - ay
-            count = min(max(int(math.ceil(math.sqrt(dx * dx + dy * dy))), 1), 4000)
-            for j in range(count + 1):
-                cx, cy = int(np.rint(ax + j / count * dx)), int(np.rint(ay + j / count * dy))
-                if x0 <= cx < x1 and y0 <= cy < y1:
-                    marked[cy - y0, cx - x0] = True
+        _mark_segments(model_px, x0, y0, marked)
         for s in range(model_px.shape[0]):
             ax, ay = model_px[s, 0, 0], model_px[s, 0, 1]
             dx, dy = model_px[s, 1, 0] - ax, model_px[s, 1, 1] - ay
