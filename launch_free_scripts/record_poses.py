@@ -18,6 +18,9 @@ import time
 from brepose_ros.evaluation.metrics import write_predictions
 from brepose_ros.ros.replay import PoseRecorder, RosSession, scene_names
 
+#: how long to wait for the node's topics before saying "recording" anyway, s
+NODE_WAIT = 15.0
+
 
 def answer_times(recorder: PoseRecorder) -> list[float]:
     """When the diagnostics of each answered image arrived; the node's input status, published
@@ -47,7 +50,12 @@ def main() -> int:
     with RosSession() as ros:
         recorder = PoseRecorder(ros.node("pose_recorder"), pose_topic,
                                 f"{args.node}: {args.part}" if args.part else None)
-        print(f"recording {pose_topic} and /diagnostics; Ctrl-C to stop", file=sys.stderr)
+        # "recording" is said once the node's publishers have matched ours, so that a bag
+        # played after it is answered into this recorder too (a busy machine discovers slowly)
+        seen = recorder.wait_for_node(NODE_WAIT)
+        print(f"recording {pose_topic} and /diagnostics; Ctrl-C to stop"
+              + ("" if seen else f" (no estimator seen within {NODE_WAIT:.0f} s: its answers are recorded once it is)"),
+              file=sys.stderr)
         try:
             while not stop.wait(0.2):
                 arrived = answer_times(recorder)

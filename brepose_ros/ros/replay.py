@@ -246,6 +246,17 @@ class PoseRecorder:
     def _on_pose(self, msg: PoseStamped) -> None:
         self.poses[stamp_ns(msg.header.stamp)] = msg
 
+    def wait_for_node(self, timeout: float) -> bool:
+        """Whether the node's pose and diagnostics publishers matched ours within ``timeout`` s:
+        a pose published before they match is lost to this recorder."""
+        try:
+            wait_until(lambda: self.subscription.get_publisher_count() >= 1
+                       and self.diagnostics.subscription.get_publisher_count() >= 1,
+                       timeout, "the estimator's pose and diagnostics")
+        except TimeoutError:
+            return False
+        return True
+
     def values(self, stamp: int) -> dict[str, str]:
         """The diagnostics values of the part for one image ({} if it has none)."""
         statuses = list(self.diagnostics.by_stamp[stamp].status) if stamp in self.diagnostics.by_stamp else []
