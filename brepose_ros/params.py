@@ -142,7 +142,8 @@ class PoseParams(Ranged):
         "distance of a projected model edge to an image edge still counted as found, pixels", 2.0, 0.1, 50.0)
     outline_pixels: float = doc(
         "inlier_pixels of the outlines of curved faces (soft silhouettes, whose image edge lies off them where the "
-        "face turns dark), pixels", 3.0, 0.1, 50.0)
+        "face turns dark), pixels; 2, as the sharp edges: 3 cut LM-O's renders from 19 to 8 % ADD(-S) with the "
+        "render bench level (docs/results/real_lmo.md)", 2.0, 0.1, 50.0)
     min_size_pixels: float = doc(
         "smallest diagonal of the projected part, pixels; smaller poses score 0", 40.0, 0.0, 10000.0)
     min_margin_pixels: float = doc(
