@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
-from functools import lru_cache, partial
+from functools import cached_property, lru_cache, partial
 from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import cv2
@@ -398,13 +398,15 @@ class EdgeEvidence:
         # written in place: an array per bin, alive until the offsets are known, cost more in page faults
         cv2.distanceTransformWithLabels(1 - self.like_edges[b], cv2.DIST_L2, 5, labels=labels[b],
                                         labelType=cv2.DIST_LABEL_PIXEL)
-        labels[b] += self._table_starts()[b]  # here, on the bin's thread, not after every bin ran
+        labels[b] += self._table_starts[b]  # here, on the bin's thread, not after every bin ran
         table = np.zeros((len(like) + 1, 2))  # label -> (x, y) of its pixel; label 0: none
         table[1:] = like
         return table
 
+    @cached_property
     def _table_starts(self) -> np.ndarray:
-        """Where each bin's table begins in ``_nearest_table``'s: after the far-away row, the
+        """Once per image (each bin's job reads it; threads racing to fill it compute the same
+        array): where each bin's table begins in ``_nearest_table``'s: after the far-away row, the
         tables of the bins before it that have pixels, each as long as its pixels + 1."""
         per_bin = np.bincount(self._bins, minlength=self.BINS)
         like = per_bin + np.roll(per_bin, 1) + np.roll(per_bin, -1)  # bins b - 1, b and b + 1
