@@ -32,8 +32,8 @@ Diagnostics of what real light does to the method, per target:
   the polish (below), and ``near wins`` counts the wrong estimates it outscores (there the
   search missed a better pose; elsewhere the score prefers the wrong one).
 * ``support grey / colour``: the share of the projected model edges at the true pose that
-  the grey image's Canny edges confirm, and that Canny on the strongest colour channel's
-  gradient (``edges.colour``) would.
+  the grey image's Canny edges confirm, and that the colour edges (``edges.colour``: the
+  luminance's or an opponent-colour plane's gradient, ``image_edges.colour_gradients``) do.
 * ``size``: the diagonal of the projected part's bounding box, pixels.
 * ``from near truth``: recall (ADD(-S) / 2D projection) when the estimator's refinement
   (hypothesis rounds as ``PoseRefiner.verify`` runs them, view climb, polish) starts from

@@ -51,8 +51,10 @@ class EdgeParams(Ranged):
     blur_size: int = doc("odd Gaussian kernel size before edge detection; 1 disables the blur", 5, 1, 31)
     blur_sigma: float = doc("Gaussian sigma, pixels; 0 derives it from blur_size", 0.0, 0.0, 20.0)
     colour: bool = doc(
-        "Canny on the gradient of the strongest colour channel at each pixel instead of the grey image's "
-        "(colour images only)", False)
+        "colour images: Canny at each pixel on the luminance or one of two opponent-colour planes (red - green, "
+        "yellow - blue), whichever stands out most above its own noise threshold: the grey image's edges plus the "
+        "boundaries of like brightness and another hue (docs/results/real_lmo.md); false: the grey image's only",
+        True)
     canny_noise_factor: float = doc(
         "Canny high threshold in units of the gradient noise level (median gradient / 1.18)", 5.0, 0.1, 100.0)
     canny_low_ratio: float = doc("Canny low threshold as a share of the high one", 0.4, 0.01, 1.0)
