@@ -19,12 +19,22 @@ is), the final pose is the estimator's (finalists, rival and twin checks), and f
 
 - ``ok``: the final pose is right and found;
 - ``wall``: even the refined truth scores below ``pose.min_score``;
+- ``depth``: no candidate is near the truth, but one is turned like it (within
+  ``NEAR_DEG``) with its centre on the truth's line of sight (within ``NEAR_CENTRE``
+  diameters across it) at another depth: a wrong size of the right view;
 - ``coarse``: no seed and no place near the truth, and no candidate near it;
 - ``matching``: a seed or a place is near the truth but no candidate is (the matching or
   the refinement of the hypotheses lost it);
-- ``choice``: a candidate is near the truth, but the climb and polish end elsewhere
-  (a wrong pose outscores it, or its climb drifts);
+- ``drift``: a candidate is near the truth, but the best near one, climbed and polished, is
+  not right (the refinement does not reach the truth from it);
+- ``choice``: a near candidate climbs to a right pose, but the final pose is another
+  (a wrong pose outscores it);
 - ``low``: the final pose is right but scores below ``pose.min_score``.
+
+Columns besides: ``depth x`` is the final pose's centre distance over the truth's (a wrong
+size when it is 10 % or more off 1), ``near climbed`` the best near candidate climbed and
+polished (its score, y if right), ``truth > final`` whether the refined truth outscores the
+final pose.
 """
 from __future__ import annotations
 
@@ -39,9 +49,10 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 
 from bench.accuracy import CONDITIONS, PARTS, bench_steps, cached_frames, graph_and_model, overridden_params, part_set  # noqa: E402
-from bench.hypothesis_recall import chosen_pose, near_truth  # noqa: E402
+from bench.hypothesis_recall import NEAR_CENTRE, NEAR_DEG, chosen_pose, near_truth  # noqa: E402
 from bench.search_oracle import hypothesis_near, near_templates  # noqa: E402
-from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
+from brepose_ros.evaluation.metrics import ModelPoints, pose_errors, symmetric_truth  # noqa: E402
+from brepose_ros.geometry import rotation_angle_deg  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.refinement import Candidate, hypothesis_rounds  # noqa: E402
@@ -49,7 +60,7 @@ from brepose_ros.online.scoring import pose_scores, pose_shares  # noqa: E402
 from brepose_ros.online.symmetry import check_twins  # noqa: E402
 from brepose_ros.online.workers import SERIAL  # noqa: E402
 
-LOSSES = ("ok", "wall", "coarse", "matching", "choice", "low")
+LOSSES = ("ok", "wall", "depth", "coarse", "matching", "drift", "choice", "low")
 
 
 def refined_truth(estimator: Estimator, frame: Frame, entry) -> Candidate:
@@ -60,6 +71,22 @@ def refined_truth(estimator: Estimator, frame: Frame, entry) -> Candidate:
                                         hypothesis_rounds(p.refine_iterations), SERIAL)
     polished = refiner.polish(Candidate(float(s1[0]), R1[0], t1[0], None), frame, p)
     return polished if polished.score >= s1[0] else Candidate(float(s1[0]), R1[0], t1[0], None)
+
+
+def turned_like_truth(R, t, entry, graph) -> bool:
+    """Turned like the truth (symmetry aware) with its centre on the truth's line of sight,
+    at any depth: a pose a scan along that line could carry to the truth."""
+    R_true, t_true = symmetric_truth(R, entry.R, entry.t, graph)
+    truth, centre = R_true @ graph.model_center + t_true, R @ graph.model_center + t
+    across = np.linalg.norm(truth[:2] / truth[2] - centre[:2] / centre[2]) * truth[2]
+    return bool(rotation_angle_deg(R, R_true) < NEAR_DEG and centre[2] > 0
+                and across < NEAR_CENTRE * graph.model_diameter)
+
+
+def depth_ratio(pose, entry, graph) -> float:
+    """The pose's model centre distance over the truth's."""
+    return float(np.linalg.norm(pose.R @ graph.model_center + pose.t)
+                 / np.linalg.norm(entry.R @ graph.model_center + entry.t))
 
 
 def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> dict:
@@ -84,6 +111,10 @@ def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> d
                      for c, size in search.places(coarse, p.search.windows))
     candidates = estimator.candidates(frame)
     near_c = [c for c in candidates if near_truth(c.R, c.t, entry, g)]
+    turned = [c for c in candidates if turned_like_truth(c.R, c.t, entry, g)]
+    near_climbed = refiner.best(near_c, frame, p.pose) if near_c else None
+    near_right = near_climbed is not None and pose_errors(near_climbed.R, near_climbed.t, entry.R, entry.t,
+                                                          model, g).success_sym
     final = chosen_pose(estimator, candidates, frame, p) if candidates else None
     if final is not None and p.pose.twin_check:
         final, _ = check_twins(final, g, refiner, frame, p.pose)
@@ -93,8 +124,12 @@ def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> d
         loss = "ok"
     elif refined.score < p.pose.min_score:
         loss = "wall"
+    elif not near_c and turned:
+        loss = "depth"
     elif not near_c:
         loss = "matching" if (seed_near or place_near) else "coarse"
+    elif not near_right:
+        loss = "drift"
     elif not success:
         loss = "choice"
     else:
@@ -104,6 +139,9 @@ def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> d
                 near_score=max((c.score for c in near_c), default=0.0),
                 best_candidate=max((c.score for c in candidates), default=0.0),
                 final=final.score if final is not None else 0.0, success=success, loss=loss,
+                turned=min((depth_ratio(c, entry, g) for c in turned), key=lambda r: abs(np.log(r)), default=0.0),
+                near_climbed=near_climbed.score if near_climbed is not None else 0.0, near_right=near_right,
+                depth=depth_ratio(final, entry, g) if final is not None else 0.0,
                 visible=getattr(entry, "visible_fraction", None))
 
 
@@ -119,8 +157,9 @@ def main(argv=None) -> int:
     params = overridden_params(args.overrides)
     cache = REPO / "data" / "bench"
     print("| part | condition | image | truth | refined (ok) | conf / expl / sig | coarse rank | seed / place near "
-          "| recall (best near) | best cand. | final (success) | loss |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| recall (best near) | turned, depth x | near climbed | best cand. | final (success) | depth x "
+          "| truth > final | loss |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     tally: dict[tuple[str, str], Counter] = {}
     for name, step in bench_steps(args.parts, cache).items():
         graph, model = graph_and_model(step, cache)
@@ -134,8 +173,10 @@ def main(argv=None) -> int:
                       f"{d['refined']:.2f} ({'y' if d['refined_ok'] else 'n'}) | "
                       f"{s.confirmed:.2f} / {s.explained:.2f} / {s.significance:.2f} | {d['rank']} | "
                       f"{'y' if d['seed_near'] else 'n'} / {'y' if d['place_near'] else 'n'} | "
-                      f"{'y' if d['recall'] else 'n'} ({d['near_score']:.2f}) | {d['best_candidate']:.2f} | "
-                      f"{d['final']:.2f} ({'y' if d['success'] else 'n'}) | {d['loss']} |", flush=True)
+                      f"{'y' if d['recall'] else 'n'} ({d['near_score']:.2f}) | {d['turned']:.2f} | "
+                      f"{d['near_climbed']:.2f} ({'y' if d['near_right'] else 'n'}) | {d['best_candidate']:.2f} | "
+                      f"{d['final']:.2f} ({'y' if d['success'] else 'n'}) | {d['depth']:.2f} | "
+                      f"{'y' if d['refined'] > d['final'] else 'n'} | {d['loss']} |", flush=True)
         estimator.close()
     print("\n| set | condition | images | " + " | ".join(LOSSES) + " |")
     print("|---|---|---|" + "---|" * len(LOSSES))
