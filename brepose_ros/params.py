@@ -236,7 +236,9 @@ class SearchParams(Ranged):
     max_size_fraction: float = doc("largest part diameter searched, share of the image diagonal", 0.75, 0.01, 4.0)
     size_step: float = doc("ratio between successive part diameters searched", 1.25, 1.01, 2.0)
     min_coarse_share: float = doc(
-        "a position is scored only if this share of a template's points hit an edge", 0.4, 0.0, 1.0)
+        "a position is scored only if this share of a template's probe points (a quarter of its points, spread "
+        "along it) hit an edge (0.5 rather than 0.4: the search's kernel 0.59x the CPU on occluded images, the "
+        "same poses on the tuning parts' bench scenes; docs/results/latency.md)", 0.5, 0.0, 1.0)
     hypotheses: int = doc("best distinct templates handed to the refinement", 48, 1, 256)
     distinct_fraction: float = doc(
         "templates of one view and about one angle closer than this share of their size are one", 0.2, 0.0, 1.0)
