@@ -126,6 +126,19 @@ def test_the_run_on_kernel_counts_probes_beyond_ends_off_other_model_edges():
     assert out[2].tolist() == [0.0, 0.0, 0.0]
 
 
+def test_a_model_edge_off_the_image_hides_no_run_on_probe_inside_it():
+    """The model's pixels are drawn within the image only: an edge 2 px above the top row
+    (x 140-160) does not hide the probes of an edge along the top row (x 100-140), whose 10
+    probes past each end all count and lie on the image edge; its own probes lie outside."""
+    near = np.zeros((1, 8, 242, 322), np.uint8)
+    near[0, :, 0 + 1, 60 + 1:200 + 1] = 1
+    chance = np.zeros(near.shape, np.float32)
+    out = np.zeros((1, 3))
+    segments = np.array([[[100.0, 0.0], [140.0, 0.0]], [[140.0, -2.0], [160.0, -2.0]]])
+    kernels.run_on_kernel(segments, np.array([0, 2]), near, chance, 0.25, 6.0, 30.0, 10.0, 3.0, out)
+    assert out[0].tolist() == [20.0, 20.0, 0.0]
+
+
 def test_outlines_of_curved_faces_are_looked_up_within_their_own_reach():
     """A disc whose image edge lies 3 px inside the model's outline (a soft silhouette: the
     curved face darkens towards it) beside a plate whose sharp edges lie on the model's. At

@@ -440,6 +440,14 @@ def _mark_segments(model_px: np.ndarray, left: int, top: int, marked: np.ndarray
 
 
 @njit(nogil=True, cache=True)
+def _disc(radius: float) -> list:
+    """The offsets (x, y) of the pixels within ``radius`` of a pixel, rows from the top."""
+    whole = int(math.floor(radius))
+    return [(ox, oy) for oy in range(-whole, whole + 1) for ox in range(-whole, whole + 1)
+            if ox * ox + oy * oy <= radius * radius]
+
+
+@njit(nogil=True, cache=True)
 def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray, chance: np.ndarray,
                    row_starts: np.ndarray, columns: np.ndarray, outline: np.ndarray, tolerances: np.ndarray, cell: int,
                    reach: int, out: np.ndarray, labels: np.ndarray) -> None:
@@ -523,8 +531,7 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
     radius = int(math.floor(tolerance))
     marked = np.zeros((y1 - y0 + 2 * radius, x1 - x0 + 2 * radius), np.bool_)
     _mark_segments(model_px, x0 - radius, y0 - radius, marked)
-    disc = [(ox, oy) for oy in range(-radius, radius + 1) for ox in range(-radius, radius + 1)
-            if ox * ox + oy * oy <= tolerance * tolerance]
+    disc = _disc(tolerance)
     # edge pixels inside the convex outline, row by row
     corners = outline.shape[0]
     for y in range(y0, y1):
@@ -742,6 +749,7 @@ def run_on_kernel(segments: np.ndarray, spans: np.ndarray, near: np.ndarray, cha
     far = float(max(height, width))
     radius = int(math.floor(clear))
     reach = int(math.ceil(clear + 1.0 + max_probe)) + radius + 1
+    disc = _disc(clear)  # listed once rather than tested at every probe
     for b in range(len(spans) - 1):
         out[b, :] = 0.0
         lo, hi = spans[b], spans[b + 1]
@@ -757,9 +765,10 @@ def run_on_kernel(segments: np.ndarray, spans: np.ndarray, near: np.ndarray, cha
         x0, y0, x1, y1 = max(x0 - reach, 0), max(y0 - reach, 0), min(x1 + reach, width), min(y1 + reach, height)
         if x1 <= x0 or y1 <= y0:
             continue
-        # the model's own pixels on a grid of the box, to keep probes off other model edges
-        marked = np.zeros((y1 - y0, x1 - x0), np.bool_)
-        _mark_segments(model_px, x0, y0, marked)
+        # the model's own pixels on a grid of the box, to keep probes off other model edges; the
+        # grid has a border of ``radius`` never marked, so the disc about a probe needs no bounds checks
+        marked = np.zeros((y1 - y0 + 2 * radius, x1 - x0 + 2 * radius), np.bool_)
+        _mark_segments(model_px, x0, y0, marked[radius:radius + y1 - y0, radius:radius + x1 - x0])
         for s in range(model_px.shape[0]):
             ax, ay = model_px[s, 0, 0], model_px[s, 0, 1]
             dx, dy = model_px[s, 1, 0] - ax, model_px[s, 1, 1] - ay
@@ -778,11 +787,10 @@ def run_on_kernel(segments: np.ndarray, spans: np.ndarray, near: np.ndarray, cha
                     if not (x0 <= x < x1 and y0 <= y < y1):
                         continue
                     on_model = False
-                    for oy in range(-radius, radius + 1):
-                        for ox in range(-radius, radius + 1):
-                            if ox * ox + oy * oy <= clear * clear and 0 <= y + oy - y0 < y1 - y0 \
-                                    and 0 <= x + ox - x0 < x1 - x0 and marked[y + oy - y0, x + ox - x0]:
-                                on_model = True
+                    for ox, oy in disc:
+                        if marked[y - y0 + radius + oy, x - x0 + radius + ox]:
+                            on_model = True
+                            break
                     if on_model:
                         continue
                     out[b, 0] += 1.0
