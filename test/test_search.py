@@ -89,6 +89,24 @@ def test_occluded_part_among_clutter_ranks_first_and_is_placed_right():
     assert np.hypot(x - center[0], y - center[1]) <= 2 * 4, (x, y)  # two coarse cells: the spread
 
 
+def test_the_chance_of_a_cell_is_its_bins_share_of_set_cells_in_the_window_about_it():
+    """Against a plain count, outside the image counting as unset (the maps' padding too), for
+    a window wider than the image too."""
+    rng = np.random.default_rng(3)
+    h, w, pad = 9, 13, 4
+    maps = np.ones((search.BINS, h + 2 * pad, w + 2 * pad), np.uint8)  # the padding set: not counted
+    maps[:, pad:pad + h, pad:pad + w] = rng.random((search.BINS, h, w)) < 0.3
+    response = search.ResponseMaps(maps, pad, 4, (h, w), search.block_bounds(maps))
+    windows = [3, 7, 31]
+    chances = response.chances(windows)
+    cells = maps[:, pad:pad + h, pad:pad + w].astype(float)
+    for s, window in enumerate(windows):
+        half = window // 2
+        for y, x in [(0, 0), (4, 6), (8, 12), (2, 11)]:
+            inside = cells[:, max(y - half, 0):y + half + 1, max(x - half, 0):x + half + 1]
+            np.testing.assert_allclose(chances[s, :, y, x], inside.sum(axis=(1, 2)) / window ** 2, rtol=1e-6)
+
+
 def plain_best(maps, pad, dx, dy, bins, chance, probes, need):
     """Each template's best score and cell by counting every point at every cell."""
     h, w = chance.shape[2:]

@@ -175,10 +175,12 @@ class ResponseMaps:
         out = np.empty((len(windows), BINS, hc, wc), np.float32)
 
         def of_bin(b: int) -> None:
-            cells = self.maps[b].astype(np.float32)
+            # the image's cells alone: the padding is unset, as the constant border is (a fifth of the
+            # padded map's area at the largest sizes; the window sums of 0 and 1 are exact either way)
+            cells = self.maps[b, self.pad:self.pad + hc, self.pad:self.pad + wc].astype(np.float32)
             for s, window in enumerate(windows):
-                box = cv2.boxFilter(cells, -1, (window, window), normalize=True, borderType=cv2.BORDER_CONSTANT)
-                out[s, b] = box[self.pad:self.pad + hc, self.pad:self.pad + wc]
+                cv2.boxFilter(cells, -1, (window, window), dst=out[s, b], normalize=True,
+                              borderType=cv2.BORDER_CONSTANT)
 
         pool.map(of_bin, range(BINS))
         return out
