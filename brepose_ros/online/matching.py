@@ -171,8 +171,15 @@ def _geometry(segments: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
 
 @njit(nogil=True, cache=True)
 def _mod(x: float, period: float) -> float:
-    """np.mod(x, period) for a positive period, to the bit (fmod, then the sign of the period)."""
-    rest = np.fmod(x, period)
+    """np.mod(x, period) for a positive period, to the bit (fmod, then the sign of the period).
+    Within one period either side of [0, period) fmod is x itself or x - period, which is
+    exact there (Sterbenz): the tetrad distances' wraps, too many for fmod's cost."""
+    if -period < x < period:
+        rest = x
+    elif period <= x < 2.0 * period:
+        rest = x - period
+    else:
+        rest = np.fmod(x, period)
     if rest < 0.0:
         return rest + period
     return rest if rest != 0.0 else 0.0
