@@ -589,7 +589,8 @@ def nearest_views_kernel(R: np.ndarray, t: np.ndarray, view_directions: np.ndarr
 def project_point(x: float, y: float, z: float, intrinsics: np.ndarray, distortion: np.ndarray) -> tuple[float, float]:
     """``Camera.project_model`` of one camera-frame point: ``Camera.project`` without
     distortion, else OpenCV's ``projectPoints`` arithmetic (``distortion`` the 8 rational
-    model coefficients k1 k2 p1 p2 k3 k4 k5 k6, zeros where the camera has fewer)."""
+    model coefficients k1 k2 p1 p2 k3 k4 k5 k6, zeros where the camera has fewer; none, or
+    all zero, without distortion)."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     if not distortion.any():
         return fx * x / z + cx, fy * y / z + cy
