@@ -481,6 +481,8 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
     cell_model = np.zeros((rows, cols))
     cell_confirmed = np.zeros((rows, cols))
     cell_chance = np.zeros((rows, cols))
+    # the sums in locals, added in the same order: kept in registers rather than in ``out``
+    length_sum, confirmed_sum, chance_sum = 0.0, 0.0, 0.0
     for s in range(model_px.shape[0]):
         ax, ay = model_px[s, 0, 0], model_px[s, 0, 1]
         dx, dy = model_px[s, 1, 0] - ax, model_px[s, 1, 1] - ay
@@ -495,15 +497,18 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
             x = min(max(int(np.rint(px)) + 1, 0), width + 1)
             y = min(max(int(np.rint(py)) + 1, 0), height + 1)
             confirmed = near[k, b, y, x] != 0
-            out[0] += weight
-            out[2] += weight * chance[k, b, y, x]
+            by_chance = weight * chance[k, b, y, x]
+            length_sum += weight
+            chance_sum += by_chance
             if confirmed:
-                out[1] += weight
+                confirmed_sum += weight
             if 1 <= x <= width and 1 <= y <= height:
-                cell_model[(y - 1) // cell, (x - 1) // cell] += weight
-                cell_chance[(y - 1) // cell, (x - 1) // cell] += weight * chance[k, b, y, x]
+                r, c = (y - 1) // cell, (x - 1) // cell
+                cell_model[r, c] += weight
+                cell_chance[r, c] += by_chance
                 if confirmed:
-                    cell_confirmed[(y - 1) // cell, (x - 1) // cell] += weight
+                    cell_confirmed[r, c] += weight
+    out[0], out[1], out[2] = length_sum, confirmed_sum, chance_sum
     # the outline's bounding box in the image
     x0, y0, x1, y1 = width, height, 0, 0
     for i in range(outline.shape[0]):
