@@ -107,19 +107,22 @@ class Collector:
         part: whose image it is)."""
         steps = {name: step_file(PARTS[name], self.cache) for name in names}
         steps = {name: step for name, step in steps.items() if step is not None}
-        models = {}
+        models, centres = {}, {}
         for name, step in steps.items():
             mesh = tessellate(load_step(step))
             models[name] = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
+            centres[name] = (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0)) / 2
         records = []
         for name, step in steps.items():
             estimator = Estimator(AspectGraph.load(cached_graph_path(step, self.cache, self.step_deg)), self.params)
             for other, other_step in steps.items():
                 for condition in self.positives if other == name else NEGATIVE_CONDITIONS:
-                    for r in evaluate_scene(self.scene(other, other_step, condition), estimator, models[other]):
+                    scene = self.scene(other, other_step, condition)
+                    for entry, r in zip(scene.entries, evaluate_scene(scene, estimator, models[other])):
                         # a pose turned by an exact symmetry of the part is the same pose
                         correct = other == name and bool(r.errors and r.errors.success_sym)
-                        records.append(record(r.estimate, name, other, condition, correct))
+                        records.append(record(r, name, other, condition, correct,
+                                              float(np.linalg.norm(entry.R @ centres[other] + entry.t))))
             estimator.close()
             print(f"{name}: done", file=sys.stderr)
         return records
@@ -472,13 +475,19 @@ def git_commit() -> str:
         return "unknown"
 
 
-def record(estimate, owner: str, part: str, condition: str, correct: bool) -> dict:
-    """What one estimate reported, for fitting and checking a confidence on it: the
-    features of ``confidence.FEATURES`` and the confidence of the estimator's calibration."""
+def record(result, owner: str, part: str, condition: str, correct: bool, truth_distance: float) -> dict:
+    """What one image's estimate reported, for fitting and checking a confidence on it: the
+    features of ``confidence.FEATURES`` and the confidence of the estimator's calibration;
+    and, to tell what a wrong pose is, the image, the pose's errors against the image's part
+    (on another part's image: where a look-alike lies) and its centre's distance against the
+    truth's (``truth_distance``, metres)."""
+    estimate = result.estimate
     shares = estimate.shares._asdict() if estimate.shares is not None else {}
-    return {"owner": owner, "part": part, "condition": condition, "correct": correct,
+    errors = result.errors.to_dict() if result.errors is not None else {}
+    return {"owner": owner, "part": part, "condition": condition, "image": result.image, "correct": correct,
             "margin": estimate.symmetry_margin, "confidence": float(estimate.confidence), **shares,
-            **features(estimate)}
+            **features(estimate), **{k: float(v) for k, v in errors.items()}, "distance": estimate.distance,
+            "truth_distance": truth_distance}
 
 
 def plot(path: Path, curves: dict, scores, correct, positive, calibrated, target) -> None:
