@@ -168,6 +168,7 @@ def test_every_feature_is_read_from_an_estimate():
     assert set(values) == set(FEATURES)
     assert values["twin_margin"] == 1.0 and values["log_insignificance"] == pytest.approx(np.log(1e-4))
     assert features(estimate(0.8, shares=None))["confirmed"] == 0.0  # nothing scored
+    assert features(estimate(0.8, shares=Shares(0.8, 0.8, 0.9999, run_on=0.25)))["run_on"] == 0.25
 
 
 def test_the_shipped_confidence_rises_with_the_score():
@@ -224,4 +225,27 @@ def test_a_refused_pose_says_which_rule_refused_it():
     weak = estimate(0.3, confidence=0.01, distance=0.5)
     assert not is_found(weak, ranged)
     assert not_found_reason(weak, ranged) == ("score 0.30, pose.min_score 0.55; confidence 0.01, "
-                                              "pose.min_confidence 0.06")
+                                              "pose.min_confidence 0.07")
+
+
+def test_the_trusted_rule_reaches_its_precision_on_the_estimates_it_is_chosen_among():
+    """bench/confidence.py's trusted rule: the confidence level with the most right poses whose
+    precision reaches the target; where a look-alike's pose outranks every right one no level
+    does, until its images are left out."""
+    from bench.confidence import Outcomes, choose_rule_at
+
+    def record(part, score, correct):
+        return {"owner": "sharp_bracket", "part": part, "condition": "clean", "score": score, "correct": correct}
+
+    records = ([record("sharp_bracket", 0.9, True)] * 4 + [record("sharp_bracket", 0.7, False)] * 2 +
+               [record("rounded_bracket", 0.95, False)] * 2 + [record("base_attachment", 0.6, False)] * 3)
+    # the confidence rises from about 0.01 at score 0.7 to 0.99 at 0.9
+    calibration = Calibration(("score",), Logistic((0.5,), (0.1,), (0.0,), 20.0),
+                              Logistic((0.8,), (0.1,), (5.0,), 0.0), 0.5, {})
+    outcomes = Outcomes(records, calibration)
+    assert list(outcomes.apart) == [True] * 6 + [False] * 2 + [True] * 3
+    assert choose_rule_at(outcomes, 0.55, 0.95) is None
+    level = choose_rule_at(outcomes, 0.55, 0.95, outcomes.apart)
+    found, right, precision, recall = outcomes.rule(0.55, level, outcomes.apart)
+    assert (found, right, precision, recall) == (4, 4, 1.0, 4 / 6)
+    assert outcomes.rule(0.55, level)[2] == pytest.approx(4 / 6)  # the look-alikes' poses still pass it

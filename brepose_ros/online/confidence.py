@@ -59,6 +59,9 @@ FEATURES: dict[str, Callable[["Estimate"], float]] = {
     "log_size": lambda e: math.log(max(e.size_pixels, 1.0)),
     "log_model_length": lambda e: math.log(max(e.model_length_pixels, 1.0)),
     "log_image_lines": lambda e: math.log1p(e.n_image_segments),
+    # the image's edges running on past the model's ends: a factor of the score already, at a
+    # hand-set weight (scoring.RUN_ON_WEIGHT); alone it adds to the fit (docs/results/confidence.md)
+    "run_on": lambda e: e.shares.run_on if e.shares else 0.0,
 }
 
 
