@@ -225,7 +225,7 @@ def test_a_refused_pose_says_which_rule_refused_it():
     weak = estimate(0.3, confidence=0.01, distance=0.5)
     assert not is_found(weak, ranged)
     assert not_found_reason(weak, ranged) == ("score 0.30, pose.min_score 0.55; confidence 0.01, "
-                                              "pose.min_confidence 0.07")
+                                              "pose.min_confidence 0.08")
 
 
 def test_the_trusted_rule_reaches_its_precision_on_the_estimates_it_is_chosen_among():
