@@ -537,16 +537,19 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
     marked = np.zeros((y1 - y0 + 2 * radius, x1 - x0 + 2 * radius), np.bool_)
     _mark_segments(model_px, x0 - radius, y0 - radius, marked)
     disc = _disc(tolerance)
-    # edge pixels inside the convex outline, row by row
+    # edge pixels inside the convex outline, row by row: each row's span from the outline's sides
+    # that cross it, each side walked once over its rows (not every side tested at every row)
     corners = outline.shape[0]
+    lefts, rights = np.full(y1 - y0, np.inf), np.full(y1 - y0, -np.inf)
+    for i in range(corners):
+        ax, ay = outline[i, 0], outline[i, 1]
+        bx, by = outline[(i + 1) % corners, 0], outline[(i + 1) % corners, 1]
+        # the rows y with min(ay, by) <= y < max(ay, by)
+        for y in range(max(int(math.ceil(min(ay, by))), y0), min(int(math.ceil(max(ay, by))), y1)):
+            x = ax + (y - ay) * (bx - ax) / (by - ay)
+            lefts[y - y0], rights[y - y0] = min(lefts[y - y0], x), max(rights[y - y0], x)
     for y in range(y0, y1):
-        left, right = np.inf, -np.inf
-        for i in range(corners):
-            ax, ay = outline[i, 0], outline[i, 1]
-            bx, by = outline[(i + 1) % corners, 0], outline[(i + 1) % corners, 1]
-            if (ay <= y < by) or (by <= y < ay):
-                x = ax + (y - ay) * (bx - ax) / (by - ay)
-                left, right = min(left, x), max(right, x)
+        left, right = lefts[y - y0], rights[y - y0]
         if right < left:
             continue
         # the row's edge pixels only: a few in a hundred pixels of the box
