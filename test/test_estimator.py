@@ -202,6 +202,29 @@ def test_a_fourth_distinct_start_that_climbs_highest_is_chosen_by_default(monkey
     assert refiner.best(starts, None, PoseParams(climb_candidates=2)).score == 0.6
 
 
+def test_a_start_climbed_at_an_earlier_stage_of_the_image_is_not_climbed_again(monkeypatch):
+    """The estimator keeps an image's climbs (``climbs``): a later stage's ``best`` and the
+    finalists take a start's earlier climb, and the new starts alone are climbed."""
+    from types import SimpleNamespace
+    from brepose_ros.geometry import rot_z
+    from brepose_ros.online.refinement import Candidate, PoseRefiner
+    from brepose_ros.params import PoseParams
+
+    refiner = PoseRefiner(SimpleNamespace(view_directions=np.eye(3), model_diameter=0.1))
+    starts = [Candidate(0.6 - 0.01 * k, rot_z(np.radians(20.0 * k)), np.array([0.0, 0.0, 0.3]), None)
+              for k in range(6)]
+    climbed = []
+    monkeypatch.setattr(refiner, "climb", lambda c, *a, **k: climbed.append(c) or Candidate(c.score + 0.1, c.R, c.t, None))
+    monkeypatch.setattr(refiner, "polish", lambda c, *a: c)
+    climbs = {}
+    assert refiner.best(starts[2:], None, PoseParams(climb_candidates=2), climbs=climbs).score == pytest.approx(0.68)
+    finalists = refiner.finalists(starts, None, PoseParams(climb_candidates=3), climbs=climbs)
+    assert [c.score for c in finalists] == pytest.approx([0.7, 0.69, 0.68])
+    assert climbed == [starts[2], starts[3], starts[0], starts[1]]  # starts[2] once
+    refiner.finalists(starts, None, PoseParams(climb_candidates=3))  # without the image's climbs
+    assert climbed[4:] == [starts[0], starts[1], starts[2]]
+
+
 @pytest.mark.slow
 def test_a_known_working_distance_keeps_the_true_pose_and_refuses_other_depths(bracket, estimator, tmp_path):
     """Clean images with exact ground truth: the truth's model-centre distance d. Where the

@@ -203,12 +203,13 @@ class Estimator:
         groups = region_groups(frame, p.matching)
         if paper_only:
             return self._paper_estimate(groups, frame, p, hypotheses, pool, not_found, clock)
-        candidates, best = self._candidates(frame, groups, p, hypotheses, search, pool, timings, clock)
+        climbs: dict = {}  # the view climbs made on this image (``PoseRefiner._climbed``)
+        candidates, best = self._candidates(frame, groups, p, hypotheses, search, pool, timings, clock, climbs)
         if not candidates:
             return not_found
         clock = time.perf_counter()
         if best is None:
-            finalists = self._refiner.finalists(candidates, frame, p.pose, pool)
+            finalists = self._refiner.finalists(candidates, frame, p.pose, pool, climbs)
             best = check_rivals(in_working_range(finalists, self.graph, p.pose) or finalists, self.graph, frame,
                                 p.pose)
             clock = _lap(timings, "refinement", clock)
@@ -241,13 +242,14 @@ class Estimator:
         the seconds of each stage are added to ``timings`` if given."""
         p = self._params
         return self._candidates(frame, region_groups(frame, p.matching), p, self._hypotheses, self._search,
-                                self._pool, {} if timings is None else timings, time.perf_counter())[0]
+                                self._pool, {} if timings is None else timings, time.perf_counter(), {})[0]
 
     def _candidates(self, frame: Frame, groups: list, p: EstimatorParams, hypotheses: TetradHypotheses,
-                    search: TemplateSearch | None, pool: WorkerPool, timings: dict,
-                    clock: float) -> tuple[list[Candidate], Candidate | None]:
+                    search: TemplateSearch | None, pool: WorkerPool, timings: dict, clock: float,
+                    climbs: dict) -> tuple[list[Candidate], Candidate | None]:
         """Refined, scored hypotheses of the chosen generators (module doc, steps 2-4), and the
-        best of them climbed and polished if a generator was skipped for it (else None)."""
+        best of them climbed and polished if a generator was skipped for it (else None);
+        ``climbs`` keeps the image's view climbs for the later stages and the finalists."""
         candidates: list[Candidate] = []
         coarse = None  # the template search's, once per image for every stage that needs it
         for n, stage in enumerate(p.search.stages):
@@ -256,7 +258,8 @@ class Estimator:
                 # the climbed, polished pose decides, not the raw candidates: on the bench a
                 # right pose's candidate scored 0.75-0.94 and the climb lifted it, while wrong
                 # ones stayed below 0.85 (docs/DECISIONS.md); kept as a start for the final climb
-                settled = in_working_range([self._refiner.best(candidates, frame, p.pose, pool)], self.graph, p.pose)
+                settled = in_working_range([self._refiner.best(candidates, frame, p.pose, pool, climbs)], self.graph,
+                                           p.pose)
                 clock = _lap(timings, "refinement", clock)
                 if settled and settled[0].score >= p.search.enough_score:
                     return settled, settled[0]

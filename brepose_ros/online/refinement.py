@@ -365,23 +365,33 @@ class PoseRefiner:
         return align_on_edges(R, t, self.graph, frame,
                               radii=coarse_to_fine_radii(self.graph, R, t, frame.camera, p.inlier_pixels))
 
-    def best(self, candidates: list[Candidate], frame: Frame, p: PoseParams, pool: WorkerPool = SERIAL) -> Candidate:
+    def best(self, candidates: list[Candidate], frame: Frame, p: PoseParams, pool: WorkerPool = SERIAL,
+             climbs: dict | None = None) -> Candidate:
         """The best pose of the candidates: the distinct best ones climbed over neighbouring
-        views (until one scores ``CLEAR_SCORE``), the best climbed polished on edge pixels."""
-        return self.polish(self._climbed(candidates, frame, p, pool)[0], frame, p)
+        views (until one scores ``CLEAR_SCORE``), the best climbed polished on edge pixels.
+        ``climbs`` as ``_climbed``'s."""
+        return self.polish(self._climbed(candidates, frame, p, pool, climbs)[0], frame, p)
 
     def finalists(self, candidates: list[Candidate], frame: Frame, p: PoseParams,
-                  pool: WorkerPool = SERIAL) -> list[Candidate]:
+                  pool: WorkerPool = SERIAL, climbs: dict | None = None) -> list[Candidate]:
         """The climbed poses of ``best`` (best climbed first), each polished: the first is
-        ``best``'s pose, the others its rivals (``symmetry.check_rivals``)."""
-        return [self.polish(c, frame, p) for c in self._climbed(candidates, frame, p, pool)]
+        ``best``'s pose, the others its rivals (``symmetry.check_rivals``). ``climbs`` as
+        ``_climbed``'s."""
+        return [self.polish(c, frame, p) for c in self._climbed(candidates, frame, p, pool, climbs)]
 
-    def _climbed(self, candidates: list[Candidate], frame: Frame, p: PoseParams, pool: WorkerPool) -> list[Candidate]:
-        """The distinct best candidates climbed (until one scores ``CLEAR_SCORE``), best first."""
+    def _climbed(self, candidates: list[Candidate], frame: Frame, p: PoseParams, pool: WorkerPool,
+                 climbs: dict | None = None) -> list[Candidate]:
+        """The distinct best candidates climbed (until one scores ``CLEAR_SCORE``), best first.
+        ``climbs``, if given, holds the climbs made before on the same image and parameters (by
+        the start's id, with the start): a start climbed at an earlier stage is not climbed
+        again (on the occluded latency images 15 of 72 climbs were repeats)."""
+        climbs = {} if climbs is None else climbs
         candidates = sorted(candidates, key=lambda c: -c.score)
         climbed: list[Candidate] = []
         for start in distinct_poses(candidates, p.climb_candidates, self.graph.model_diameter):
-            climbed.append(self.climb(start, frame, p, pool))
+            if id(start) not in climbs:  # kept beside its climb, the start's id cannot be reused
+                climbs[id(start)] = (start, self.climb(start, frame, p, pool))
+            climbed.append(climbs[id(start)][1])
             if climbed[-1].score >= CLEAR_SCORE:
                 break  # no other pose can explain the image much better; save its climb
         return sorted(climbed, key=lambda c: -c.score)  # stable: of equal scores the better start
