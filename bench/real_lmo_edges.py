@@ -5,8 +5,8 @@ image's Canny pixels confirm, without running the estimator.
         [--variant NAME KEY=VALUE ...] [--results data/bench/real_lmo/results_estimator.json]
 
 The targets, graphs, images and renders are bench/real_lmo.py's. Each variant is the edge
-stage with some ``edges.*`` parameters changed (``--variant colour colour=true``; ``grey``,
-the parameters as given, always runs first). Per object and variant, medians over its
+stage with some ``edges.*`` parameters changed (``--variant grey colour=false``; ``given``,
+the parameters as given, always runs first; ``edges.colour`` is on by default). Per object and variant, medians over its
 targets of:
 
 * ``support``: the share of the true pose's projected visible model edges within
@@ -21,12 +21,11 @@ With ``--results`` (a results*.json of bench/real_lmo.py on the same frames) eac
 estimate from that run is scored on every variant's edges too: ``fooled`` counts the wrong
 estimates that score at least as high as the truth. A variant whose edges make the truth
 outscore the estimator's wrong poses more often gives the search and the score a chance; the
-run's own estimates were chosen on the grey edges, so this leans to the grey variant.
+run's own estimates were chosen on the given parameters' edges, so this leans to ``given``.
 """
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -50,9 +49,10 @@ from brepose_ros.synthetic.render import Placed, render  # noqa: E402
 
 
 def variant(text: list[str]) -> tuple[str, dict]:
-    """``NAME KEY=VALUE ...`` -> (name, edges overrides), values parsed as YAML."""
+    """``NAME KEY=VALUE ...`` -> (name, flat ``edges.*`` overrides), values parsed as YAML
+    (checked by ``EstimatorParams.with_flat`` when applied)."""
     name, *pairs = text
-    return name, {key: yaml.safe_load(value) for key, value in (pair.split("=", 1) for pair in pairs)}
+    return name, {f"edges.{key}": yaml.safe_load(value) for key, value in (pair.split("=", 1) for pair in pairs)}
 
 
 def main(argv=None) -> int:
@@ -66,7 +66,7 @@ def main(argv=None) -> int:
     parser.add_argument("--results", type=Path, help="results*.json of bench/real_lmo.py: score its estimates too")
     args = parser.parse_args(argv)
     params = EstimatorParams.load(args.params) if args.params else EstimatorParams()
-    variants = dict([("grey", {}), *(variant(v) for v in args.variant)])
+    variants = dict([("given", {}), *(variant(v) for v in args.variant)])
     camera = Camera.load(LMO / "camera.json")
     targets = load_targets(LMO)
     frames = sorted({t.frame for t in targets})[: args.frames]
@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     graphs = {obj: graph_of(obj, args.step_deg) for obj in NAMES}
     rows, density, seconds = [], {name: [] for name in variants}, {name: [] for name in variants}
     for name, changes in variants.items():
-        edge_params = dataclasses.replace(params.edges, **changes)
+        edge_params = params.with_flat(changes).edges
         frame_of = {}
         for f in frames:
             started = time.perf_counter()
