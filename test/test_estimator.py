@@ -196,8 +196,9 @@ def test_a_fourth_distinct_start_that_climbs_highest_is_chosen_by_default(monkey
     starts = [Candidate(0.6 - 0.01 * k, rot_z(np.radians(20.0 * k)), np.array([0.0, 0.0, 0.3]), None)
               for k in range(5)]
     # the fourth start climbs to 0.7; the others stay where they are; the polish keeps each
-    monkeypatch.setattr(refiner, "climb", lambda c, *a, **k: Candidate(0.7, c.R, c.t, None) if c is starts[3] else c)
-    monkeypatch.setattr(refiner, "polish", lambda c, *a: c)
+    monkeypatch.setattr(refiner, "climb_together",
+                        lambda cs, *a, **k: [Candidate(0.7, c.R, c.t, None) if c is starts[3] else c for c in cs])
+    monkeypatch.setattr(refiner, "polished", lambda cs, *a, **k: list(cs))
     assert refiner.best(starts, None, PoseParams()).score == 0.7
     assert refiner.best(starts, None, PoseParams(climb_candidates=2)).score == 0.6
 
@@ -214,8 +215,9 @@ def test_a_start_climbed_at_an_earlier_stage_of_the_image_is_not_climbed_again(m
     starts = [Candidate(0.6 - 0.01 * k, rot_z(np.radians(20.0 * k)), np.array([0.0, 0.0, 0.3]), None)
               for k in range(6)]
     climbed = []
-    monkeypatch.setattr(refiner, "climb", lambda c, *a, **k: climbed.append(c) or Candidate(c.score + 0.1, c.R, c.t, None))
-    monkeypatch.setattr(refiner, "polish", lambda c, *a: c)
+    monkeypatch.setattr(refiner, "climb_together", lambda cs, *a, **k: [climbed.append(c) or Candidate(c.score + 0.1, c.R, c.t, None)
+                                                                         for c in cs])
+    monkeypatch.setattr(refiner, "polished", lambda cs, *a, **k: list(cs))
     climbs = {}
     assert refiner.best(starts[2:], None, PoseParams(climb_candidates=2), climbs=climbs).score == pytest.approx(0.68)
     finalists = refiner.finalists(starts, None, PoseParams(climb_candidates=3), climbs=climbs)
@@ -223,6 +225,42 @@ def test_a_start_climbed_at_an_earlier_stage_of_the_image_is_not_climbed_again(m
     assert climbed == [starts[2], starts[3], starts[0], starts[1]]  # starts[2] once
     refiner.finalists(starts, None, PoseParams(climb_candidates=3))  # without the image's climbs
     assert climbed[4:] == [starts[0], starts[1], starts[2]]
+
+
+@pytest.mark.slow
+def test_starts_climbed_and_polished_together_end_as_each_alone(bracket, estimator, tmp_path):
+    """``climb_together`` and ``polished`` send the poses of all starts to the threads as one
+    batch: each start of an occluded image among clutter climbs and polishes to the same
+    bits as alone, with two threads as with none; with a start of ``CLEAR_SCORE`` before
+    them, the later starts are not climbed (``_climbed`` stops there)."""
+    import dataclasses
+    from brepose_ros.online.frame import Frame
+    from brepose_ros.online.refinement import Candidate, distinct_poses
+    from brepose_ros.online.scoring import CLEAR_SCORE, scored_tolerances
+    from brepose_ros.online.workers import SERIAL, WorkerPool
+
+    generate_scene(bracket[0], tmp_path / "scene", 2, seed=7, config=SceneConfig(occlusion=0.3, clutter=3))
+    scene, refiner, p = load_scene(tmp_path / "scene"), estimator._refiner, estimator.params
+    pool = WorkerPool(2)
+    try:
+        for entry in scene.entries:
+            image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
+            frame = Frame.detect(image, scene.camera, p.edges, SERIAL, scored_tolerances(estimator.graph, p.pose))[1]
+            starts = distinct_poses(sorted(estimator.candidates(frame), key=lambda c: -c.score), 4,
+                                    estimator.graph.model_diameter)
+            together = refiner.climb_together(starts, frame, p.pose, pool)
+            alone = [refiner.climb(start, frame, p.pose) for start in starts]
+            assert len(starts) >= 2 and any(a.score > s.score for a, s in zip(alone, starts))  # the climbs moved
+            for a, b in zip(together, alone):
+                assert a.score == b.score and np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
+            polished = refiner.polished(alone, frame, p.pose, pool)
+            for a, b in zip(polished, [refiner.polish(c, frame, p.pose) for c in alone]):
+                assert a.score == b.score and np.array_equal(a.R, b.R) and np.array_equal(a.covariance, b.covariance)
+            clear = dataclasses.replace(starts[0], score=CLEAR_SCORE)
+            ends = refiner.climb_together([clear] + starts[1:], frame, p.pose, pool)
+            assert ends[0] is clear and ends[1:] == [None] * (len(starts) - 1)
+    finally:
+        pool.close()
 
 
 @pytest.mark.slow

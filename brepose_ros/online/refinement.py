@@ -33,11 +33,11 @@ projected size and halves down to the final tolerance, ``coarse_to_fine_radii``)
 goes through the same guarded rounds, and the aligned end is kept if it scores clearly
 higher (``PoseRefiner.realign``; docs/results/refinement.md).
 
-The best few distinct poses then climb over neighbouring views of the graph
-(``PoseRefiner.climb``); the best climbed is polished on the Canny edge pixels at the final
-tolerance (``align_on_edges``), which hear edges the line detector missed, and the polish is
-kept unless the score clearly drops. The estimator polishes the other climbed poses too,
-as rivals of the best for ``symmetry.check_rivals`` (``PoseRefiner.finalists``).
+The best few distinct poses then climb over neighbouring views of the graph, in step
+(``PoseRefiner.climb_together``); the best climbed is polished on the Canny edge pixels at
+the final tolerance (``align_on_edges``), which hear edges the line detector missed, and the
+polish is kept unless the score clearly drops. The estimator polishes the other climbed
+poses too, as rivals of the best for ``symmetry.check_rivals`` (``PoseRefiner.finalists``).
 """
 from __future__ import annotations
 
@@ -377,52 +377,88 @@ class PoseRefiner:
         """The climbed poses of ``best`` (best climbed first), each polished: the first is
         ``best``'s pose, the others its rivals (``symmetry.check_rivals``). ``climbs`` as
         ``_climbed``'s."""
-        return [self.polish(c, frame, p) for c in self._climbed(candidates, frame, p, pool, climbs)]
+        return self.polished(self._climbed(candidates, frame, p, pool, climbs), frame, p, pool)
 
     def _climbed(self, candidates: list[Candidate], frame: Frame, p: PoseParams, pool: WorkerPool,
                  climbs: dict | None = None) -> list[Candidate]:
         """The distinct best candidates climbed (until one scores ``CLEAR_SCORE``), best first.
         ``climbs``, if given, holds the climbs made before on the same image and parameters (by
         the start's id, with the start): a start climbed at an earlier stage is not climbed
-        again (on the occluded latency images 15 of 72 climbs were repeats)."""
+        again (on the occluded latency images 15 of 72 climbs were repeats). The new starts
+        climb together (``climb_together``)."""
         climbs = {} if climbs is None else climbs
         candidates = sorted(candidates, key=lambda c: -c.score)
-        climbed: list[Candidate] = []
-        for start in distinct_poses(candidates, p.climb_candidates, self.graph.model_diameter):
-            if id(start) not in climbs:  # kept beside its climb, the start's id cannot be reused
-                climbs[id(start)] = (start, self.climb(start, frame, p, pool))
-            climbed.append(climbs[id(start)][1])
-            if climbed[-1].score >= CLEAR_SCORE:
-                break  # no other pose can explain the image much better; save its climb
-        return sorted(climbed, key=lambda c: -c.score)  # stable: of equal scores the better start
+        starts = distinct_poses(candidates, p.climb_candidates, self.graph.model_diameter)
+        fresh = [start for start in starts if id(start) not in climbs]
+        for start, climbed in zip(fresh, self.climb_together(fresh, frame, p, pool)):
+            if climbed is not None:  # kept beside its climb, the start's id cannot be reused
+                climbs[id(start)] = (start, climbed)
+        ends: list[Candidate] = []
+        for start in starts:
+            ends.append(climbs[id(start)][1])
+            if ends[-1].score >= CLEAR_SCORE:
+                break  # no other pose can explain the image much better; its climb was saved
+        return sorted(ends, key=lambda c: -c.score)  # stable: of equal scores the better start
 
     def climb(self, start: Candidate, frame: Frame, p: PoseParams, pool: WorkerPool = SERIAL) -> Candidate:
-        """Hill-climb the score over neighbouring views of the aspect graph.
+        """``start`` hill-climbed over neighbouring views of the aspect graph (``climb_together``)."""
+        return self.climb_together([start], frame, p, pool)[0]
+
+    def climb_together(self, starts: list[Candidate], frame: Frame, p: PoseParams,
+                       pool: WorkerPool = SERIAL) -> list[Candidate | None]:
+        """Each start hill-climbed over neighbouring views of the aspect graph, in step with
+        the others; None for a start not climbed to the end because a start before it climbed
+        to ``CLEAR_SCORE`` (``_climbed`` stops at that one).
 
         A hypothesis from a view 10-30 degrees off refines into a nearby local optimum.
         Each step turns the pose so that the camera sees the part along each of the
         current view's graph neighbours (keeping the part's centre where it is), refines
-        those turned poses briefly (together: one batch), and moves to the best-scoring
-        neighbour while the score improves by more than float noise.
+        those turned poses briefly, and moves to the best-scoring neighbour while the score
+        improves by more than float noise. A climb ends the same alone or beside others
+        (each pose refines and scores alone): the steps of all climbs go to the ``pool`` as
+        one batch, as do the last rounds that settle them, rather than a start's 8
+        neighbours at a time (on the occluded latency images 3-4 starts a stage climbing 1-4
+        steps, each then a handful of short calls between the threads).
         """
-        g, best = self.graph, start
-        if start.score >= CLEAR_SCORE:
-            return start  # nothing left to find, only the score's noise to chase
-        for _ in range(p.view_search_steps):
-            here = g.nearest_view(best.R, best.t)
-            center = best.R @ g.model_center + best.t
-            R = np.array([best.R @ turn for turn in self._turns_at(here)])
-            R, t, scores = self.refined_scores(R, center - R @ g.model_center, frame, p, CLIMB_ROUNDS, pool)
-            improved = best
-            for R_j, t_j, score in zip(R, t, scores):
-                if score > improved.score + CLIMB_MIN_GAIN:
-                    improved = Candidate(float(score), R_j, t_j, best.hypothesis)
-            if improved is best:
+        g = self.graph
+        ends: list[Candidate | None] = list(starts)
+        # a start scoring CLEAR_SCORE is not climbed (nothing left to find, only the score's
+        # noise to chase), and no start after it is needed
+        climbing = []
+        for k, start in enumerate(starts):
+            if start.score >= CLEAR_SCORE:
+                ends[k + 1:] = [None] * (len(starts) - k - 1)
                 break
-            best = improved
-        R, t = self.refine(best.R[None], best.t[None], frame, p, SETTLE_ROUNDS)
-        score = float(pose_scores(g, R, t, frame, p)[0])
-        return Candidate(score, R[0], t[0], best.hypothesis) if score >= best.score else best
+            climbing.append(k)
+        settling = list(climbing)
+        for _ in range(p.view_search_steps):
+            if not climbing:
+                break
+            turned = [(k, ends[k].R @ turn) for k in climbing for turn in self._turns_at(g.nearest_view(ends[k].R,
+                                                                                                     ends[k].t))]
+            R = np.array([R_k for _, R_k in turned])
+            centers = np.array([ends[k].R @ g.model_center + ends[k].t for k, _ in turned])
+            R, t, scores = self.refined_scores(R, centers - R @ g.model_center, frame, p, CLIMB_ROUNDS, pool)
+            improved = {k: ends[k] for k in climbing}
+            for (k, _), R_j, t_j, score in zip(turned, R, t, scores):
+                if score > improved[k].score + CLIMB_MIN_GAIN:
+                    improved[k] = Candidate(float(score), R_j, t_j, ends[k].hypothesis)
+            climbing = [k for k in climbing if improved[k] is not ends[k]]
+            for k in climbing:
+                ends[k] = improved[k]
+            cleared = [k for k in settling if ends[k].score >= CLEAR_SCORE]
+            if cleared:  # the climbs after it are not needed
+                climbing = [k for k in climbing if k <= cleared[0]]
+                settling = [k for k in settling if k <= cleared[0]]
+                ends[cleared[0] + 1:] = [None] * (len(starts) - cleared[0] - 1)
+        if settling:
+            stage = [lambda R_s, t_s: self.refine(R_s, t_s, frame, p, SETTLE_ROUNDS)]
+            R, t, scores, _ = self._staged(np.array([ends[k].R for k in settling]),
+                                           np.array([ends[k].t for k in settling]), frame, p, stage, pool,
+                                           np.array([ends[k].score for k in settling]))
+            for j, k in enumerate(settling):  # the settled pose where it scores no lower
+                ends[k] = dataclasses.replace(ends[k], score=float(scores[j]), R=R[j], t=t[j])
+        return ends
 
     def _turns_at(self, view: int) -> list[np.ndarray]:
         """The rotations that turn a pose seen from ``view`` to be seen from each of its
@@ -435,18 +471,36 @@ class PoseRefiner:
         return self._turns[view]
 
     def polish(self, best: Candidate, frame: Frame, p: PoseParams) -> Candidate:
-        """The chosen pose refined on edge pixels at the final radius (``align_on_edges``),
-        kept unless its score drops by more than ``POLISH_SCORE_SLACK``: on soft outlines
-        (a curved part's silhouette under lights near the camera) the edge pixels lie inside
+        """The chosen pose refined on edge pixels at the final radius (``polished``)."""
+        return self.polished([best], frame, p)[0]
+
+    def polished(self, chosen: list[Candidate], frame: Frame, p: PoseParams,
+                 pool: WorkerPool = SERIAL) -> list[Candidate]:
+        """Each pose refined on edge pixels at the final radius (``align_on_edges``), kept
+        unless its score drops by more than ``POLISH_SCORE_SLACK``: on soft outlines (a
+        curved part's silhouette under lights near the camera) the edge pixels lie inside
         the geometric outline and pull a right pose too far. The covariance is the polish's
-        last step's either way: the two poses lie within a pixel or so."""
-        covariance = np.full((1, 6, 6), np.nan)
-        R, t = align_on_edges(best.R[None], best.t[None], self.graph, frame,
-                              radii=np.full((1, POLISH_ROUNDS), p.inlier_pixels), covariance_out=covariance)
-        R, t = R[0], t[0]
-        score = float(pose_scores(self.graph, R[None], t[None], frame, p)[0])
-        kept = Candidate(score, R, t, best.hypothesis) if score >= best.score - POLISH_SCORE_SLACK else best
-        return dataclasses.replace(kept, covariance=covariance[0] if np.isfinite(covariance).all() else None)
+        last step's either way: the two poses lie within a pixel or so. The poses are dealt
+        between the ``pool``'s threads; each polishes alone."""
+        if not chosen:
+            return []
+
+        def chunk(which: slice) -> tuple[np.ndarray, ...]:
+            R, t = np.array([c.R for c in chosen[which]]), np.array([c.t for c in chosen[which]])
+            covariance = np.full((len(R), 6, 6), np.nan)
+            R, t = align_on_edges(R, t, self.graph, frame, radii=np.full((len(R), POLISH_ROUNDS), p.inlier_pixels),
+                                  covariance_out=covariance)
+            return R, t, pose_scores(self.graph, R, t, frame, p), covariance
+
+        chunks = pool.deal(len(chosen))
+        out: list[Candidate | None] = [None] * len(chosen)
+        for which, (R, t, scores, covariances) in zip(chunks, pool.map(chunk, chunks)):
+            for k, R_k, t_k, score, covariance in zip(range(len(chosen))[which], R, t, scores, covariances):
+                best = chosen[k]
+                kept = Candidate(float(score), R_k, t_k, best.hypothesis) if score >= best.score - POLISH_SCORE_SLACK \
+                    else best
+                out[k] = dataclasses.replace(kept, covariance=covariance if np.isfinite(covariance).all() else None)
+        return out
 
     def refine(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams,
                rounds: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
