@@ -265,3 +265,29 @@ def test_the_edge_alignment_sees_through_the_camera_as_opencv_does(distortion):
     assert np.abs(compiled - pixels).max() < 1e-9
     undistorted = np.array([kernels.undistort_point(u, v, intrinsics, coefficients) for u, v in pixels])
     assert np.abs(undistorted - camera.undistort(pixels)).max() < 1e-12
+
+
+def test_a_pose_a_stage_leaves_where_it_was_keeps_its_score_unscored(monkeypatch):
+    """``_staged`` scores after a stage only the poses it moved (a pose left where it was, to
+    the bit, scores as before); a moved pose still keeps the stage's result only if it scores
+    no lower."""
+    refiner = refinement.PoseRefiner(SimpleNamespace(view_directions=np.eye(3)))
+    scored = []
+
+    def fake_scores(graph, R, t, frame, p):
+        scored.append(len(R))
+        return t[:, 0].copy()  # the score of a pose: its x
+
+    monkeypatch.setattr(refinement, "pose_scores", fake_scores)
+    R, t = np.repeat(np.eye(3)[None], 4, axis=0), np.array([[0.1, 0, 1], [0.2, 0, 1], [0.3, 0, 1], [0.4, 0, 1]])
+
+    def stage(R_s, t_s):  # moves the first and third pose: one up, one down
+        t_n = t_s.copy()
+        t_n[0, 0], t_n[2, 0] = 0.5, 0.0
+        return R_s.copy(), t_n
+
+    R_out, t_out, scores, first = refiner._staged(R, t, None, PoseParams(), [stage], SERIAL,
+                                                  start=np.array([0.1, 0.2, 0.3, 0.4]))
+    assert scored == [2]  # the two moved poses only
+    assert scores.tolist() == [0.5, 0.2, 0.3, 0.4] and t_out[:, 0].tolist() == [0.5, 0.2, 0.3, 0.4]
+    assert first.tolist() == [0.1, 0.2, 0.3, 0.4]
