@@ -85,6 +85,18 @@ def part_set(name: str) -> str:
     return "tune" if name in TUNING else "leave-out"
 
 
+def add_scene_arguments(parser: argparse.ArgumentParser, *, parts, conditions, n: int | None = None,
+                        start: bool = False) -> None:
+    """The bench scenes a script runs on: ``--parts`` and ``--conditions`` (with these defaults), and
+    ``--n`` images per part and condition and a first image ``--start`` where the script takes them."""
+    if n is not None:
+        parser.add_argument("--n", type=int, default=n, help=f"images per part and condition (default {n})")
+    if start:
+        parser.add_argument("--start", type=int, default=0, help="first image index")
+    parser.add_argument("--parts", nargs="*", default=list(parts), choices=list(PARTS))
+    parser.add_argument("--conditions", nargs="*", default=list(conditions), choices=list(CONDITIONS))
+
+
 def step_file(source: str, cache: Path) -> Path | None:
     """The STEP file of a built-in part (exported once into the cache) or of a real part;
     None when ../shared/data is not beside the clone."""
@@ -254,9 +266,7 @@ def print_found(rows: list[dict]) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=24, help="images per part and condition (default 24)")
-    parser.add_argument("--parts", nargs="*", default=list(PARTS), choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=list(CONDITIONS), choices=list(CONDITIONS))
+    add_scene_arguments(parser, n=24, parts=PARTS, conditions=CONDITIONS)
     parser.add_argument("--params", type=Path, help="estimator YAML (config/estimator.yaml layout)")
     parser.add_argument("--label", help="names the results file and the plot's line "
                                         "(default: the --params file's stem, else 'default')")

@@ -55,7 +55,8 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, bench_steps, cached_frames, graph_and_model, overridden_params, part_set  # noqa: E402
+from bench.accuracy import (TUNING, add_scene_arguments, bench_steps, cached_frames, graph_and_model,  # noqa: E402
+                            overridden_params, part_set)
 from bench.hypothesis_recall import chosen_pose, near_truth  # noqa: E402
 from bench.occlusion_diagnosis import refined_truth  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
@@ -148,11 +149,7 @@ def classify(estimator: Estimator, frame: Frame, entry, model: ModelPoints, riva
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=6)
-    parser.add_argument("--start", type=int, default=0)
-    parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "rounded_bracket", "base_attachment"],
-                        choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clean", "clutter"], choices=list(CONDITIONS))
+    add_scene_arguments(parser, n=6, parts=TUNING, conditions=["clean", "clutter"], start=True)
     parser.add_argument("--no-rivals", action="store_true",
                         help="the final choice without the rival check (the best climbed pose, polished)")
     parser.add_argument("overrides", nargs="*", help="flat parameters, e.g. pose.climb_candidates=4")

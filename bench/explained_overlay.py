@@ -25,7 +25,7 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, scene_path, step_file  # noqa: E402
+from bench.accuracy import PARTS, add_scene_arguments, scene_path, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from bench.occlusion_diagnosis import refined_truth  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
@@ -74,9 +74,7 @@ def overlay(image: np.ndarray, frame: Frame, graph: AspectGraph, R: np.ndarray, 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--parts", nargs="*", default=["shaft", "screw", "motor1_holder", "wrist_mount"],
-                        choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clean"], choices=list(CONDITIONS))
+    add_scene_arguments(parser, parts=["shaft", "screw", "motor1_holder", "wrist_mount"], conditions=["clean"])
     parser.add_argument("--images", nargs="*", type=int, default=list(range(6)), help="image indices")
     parser.add_argument("--out", type=Path, default=REPO / "data" / "bench" / "overlays")
     args = parser.parse_args(argv)

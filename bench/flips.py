@@ -37,7 +37,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import (CONDITIONS, PARTS, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
+from bench.accuracy import (PARTS, add_scene_arguments, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
                             scene)
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import pose_errors  # noqa: E402
@@ -121,9 +121,7 @@ def flip_check(estimator: Estimator, frame: Frame, best: Candidate, axes: np.nda
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=8)
-    parser.add_argument("--parts", nargs="*", default=list(PARTS), choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clean", "clutter"], choices=list(CONDITIONS))
+    add_scene_arguments(parser, n=8, parts=list(PARTS), conditions=["clean", "clutter"])
     parser.add_argument("--label", default="default")
     args = parser.parse_args(argv)
     cache = REPO / "data" / "bench"

@@ -36,8 +36,8 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import (CONDITIONS, PARTS, SPAN, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
-                            part_set, scene, scene_path)
+from bench.accuracy import (CONDITIONS, SPAN, add_scene_arguments, bench_steps, distractor_meshes,  # noqa: E402
+                            graph_and_model, part_set, scene, scene_path)
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors, symmetric_truth  # noqa: E402
 from brepose_ros.geometry import rotation_angle_deg  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
@@ -111,10 +111,7 @@ def known_size(params: EstimatorParams, graph, camera, entry, ratio: float) -> E
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=12)
-    parser.add_argument("--start", type=int, default=0)
-    parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "base_attachment"], choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clean", "occl30+clutter"], choices=list(CONDITIONS))
+    add_scene_arguments(parser, n=12, parts=["sharp_bracket", "base_attachment"], conditions=["clean", "occl30+clutter"], start=True)
     parser.add_argument("--variant", nargs="*", default=["tetrad", "search", "both"])
     parser.add_argument("--span", type=float, nargs=2, default=SPAN, metavar=("LOW", "HIGH"),
                         help="the part's projected size, share of the image's smaller side (bench/accuracy.py's)")

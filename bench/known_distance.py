@@ -27,7 +27,8 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, graph_and_model, part_set, scene_path, step_file  # noqa: E402
+from bench.accuracy import (PARTS, TUNING, add_scene_arguments, graph_and_model, part_set, scene_path,  # noqa: E402
+                            step_file)
 from brepose_ros.evaluation.metrics import pose_errors  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
@@ -40,12 +41,8 @@ def setting_label(ratio: float) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=6)
+    add_scene_arguments(parser, n=6, parts=TUNING, conditions=["clean", "clutter", "occl30+clutter"])
     parser.add_argument("--ratios", type=float, nargs="+", default=[1.25, 1.5])
-    parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "rounded_bracket", "base_attachment"],
-                        choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clean", "clutter", "occl30+clutter"],
-                        choices=list(CONDITIONS))
     parser.add_argument("--label", default="run")
     args = parser.parse_args(argv)
     if any(r <= 1 for r in args.ratios):

@@ -26,7 +26,7 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, bench_steps, cached_frames, graph_and_model  # noqa: E402
+from bench.accuracy import TUNING, add_scene_arguments, bench_steps, cached_frames, graph_and_model  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import pose_errors  # noqa: E402
 from brepose_ros.geometry import rotation_about  # noqa: E402
@@ -48,11 +48,7 @@ def near_start(R, t, graph: AspectGraph, angle_deg: float, offset: float, rng) -
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=6)
-    parser.add_argument("--start", type=int, default=0)
-    parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "rounded_bracket", "base_attachment"],
-                        choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clean", "clutter"], choices=list(CONDITIONS))
+    add_scene_arguments(parser, n=6, parts=TUNING, conditions=["clean", "clutter"], start=True)
     parser.add_argument("--angles", nargs="*", type=float, default=[5.0, 10.0, 15.0])
     parser.add_argument("--offset", type=float, default=0.05, help="centre offset, part diameters")
     parser.add_argument("--reps", type=int, default=2, help="starts per image and angle")

@@ -48,7 +48,8 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, bench_steps, cached_frames, graph_and_model, overridden_params, part_set  # noqa: E402
+from bench.accuracy import (TUNING, add_scene_arguments, bench_steps, cached_frames, graph_and_model,  # noqa: E402
+                            overridden_params, part_set)
 from bench.hypothesis_recall import NEAR_CENTRE, NEAR_DEG, chosen_pose, near_truth  # noqa: E402
 from bench.search_oracle import hypothesis_near, near_templates  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors, symmetric_truth  # noqa: E402
@@ -147,11 +148,7 @@ def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> d
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=8)
-    parser.add_argument("--start", type=int, default=0)
-    parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "rounded_bracket", "base_attachment"],
-                        choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["occl30+clutter"], choices=list(CONDITIONS))
+    add_scene_arguments(parser, n=8, parts=TUNING, conditions=["occl30+clutter"], start=True)
     parser.add_argument("overrides", nargs="*", help="flat parameters, e.g. search.seeds=256")
     args = parser.parse_args(argv)
     params = overridden_params(args.overrides)

@@ -21,7 +21,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import CONDITIONS, PARTS, distractor_meshes, scene, step_file  # noqa: E402
+from bench.accuracy import PARTS, add_scene_arguments, distractor_meshes, scene, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
@@ -31,9 +31,7 @@ from brepose_ros.params import EstimatorParams  # noqa: E402
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--params", type=Path, nargs="+", required=True)
-    parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "rounded_bracket"], choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clean", "occl20+clutter"], choices=list(CONDITIONS))
-    parser.add_argument("--n", type=int, default=6)
+    add_scene_arguments(parser, n=6, parts=["sharp_bracket", "rounded_bracket"], conditions=["clean", "occl20+clutter"])
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--step-deg", type=float, default=10.0)
     parser.add_argument("--seed", type=int, default=100)

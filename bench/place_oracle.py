@@ -33,7 +33,7 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, bench_steps, part_set, scene_path  # noqa: E402
+from bench.accuracy import TUNING, add_scene_arguments, bench_steps, part_set, scene_path  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from bench.search_oracle import near_templates  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
@@ -105,10 +105,7 @@ def image_row(search: S.TemplateSearch, frame: Frame, p: SearchParams, entry, ar
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=6)
-    parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "rounded_bracket", "base_attachment"],
-                        choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["occl30+clutter"], choices=list(CONDITIONS))
+    add_scene_arguments(parser, n=6, parts=TUNING, conditions=["occl30+clutter"])
     parser.add_argument("--reach", type=int, default=3, help="coarse cells about the true centre (view, size)")
     parser.add_argument("--wide", type=int, default=8, help="coarse cells about the true centre (place)")
     parser.add_argument("--top", type=int, default=16, help="a rank below this counts as found")

@@ -31,7 +31,8 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, bench_steps, cached_frames, graph_and_model, overridden_params, part_set  # noqa: E402
+from bench.accuracy import (TUNING, add_scene_arguments, bench_steps, cached_frames, graph_and_model,  # noqa: E402
+                            overridden_params, part_set)
 from bench.choice_losses import candidates_and_best  # noqa: E402
 from bench.hypothesis_recall import near_truth  # noqa: E402
 from bench.occlusion_diagnosis import refined_truth  # noqa: E402
@@ -75,10 +76,7 @@ def quartiles(values) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=8)
-    parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "rounded_bracket", "base_attachment"],
-                        choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clean", "clutter"], choices=list(CONDITIONS))
+    add_scene_arguments(parser, n=8, parts=TUNING, conditions=["clean", "clutter"])
     parser.add_argument("--label", default="default")
     parser.add_argument("overrides", nargs="*", help="flat parameters, e.g. pose.climb_candidates=4")
     args = parser.parse_args(argv)

@@ -30,7 +30,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import (CONDITIONS, PARTS, SPAN, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
+from bench.accuracy import (SPAN, add_scene_arguments, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
                             scene)
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, evaluate_scene, translation_error_mm  # noqa: E402
@@ -75,9 +75,7 @@ def describe(graph: AspectGraph) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=12)
-    parser.add_argument("--parts", nargs="*", default=list(SYMMETRIC_PARTS), choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clean", "clutter"], choices=list(CONDITIONS))
+    add_scene_arguments(parser, n=12, parts=list(SYMMETRIC_PARTS), conditions=["clean", "clutter"])
     parser.add_argument("--step-deg", type=float, default=5.0)
     parser.add_argument("--seed", type=int, default=100)
     parser.add_argument("--twin-check", nargs="+", choices=("on", "off"), default=["on"])

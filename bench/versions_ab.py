@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, part_set, scene_path, step_file  # noqa: E402
+from bench.accuracy import PARTS, add_scene_arguments, part_set, scene_path, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
@@ -59,10 +59,7 @@ def version(package: str):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--base", required=True, help="commit to compare this worktree with")
-    parser.add_argument("--n", type=int, default=6)
-    parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "base_attachment"], choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clean", "clutter", "occl30+clutter"],
-                        choices=list(CONDITIONS))
+    add_scene_arguments(parser, n=6, parts=["sharp_bracket", "base_attachment"], conditions=["clean", "clutter", "occl30+clutter"])
     parser.add_argument("--label", default="run")
     args = parser.parse_args(argv)
     cache = REPO / "data" / "bench"

@@ -25,7 +25,8 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, bench_steps, cached_frames, graph_and_model, overridden_params  # noqa: E402
+from bench.accuracy import (TUNING, add_scene_arguments, bench_steps, cached_frames, graph_and_model,  # noqa: E402
+                            overridden_params)
 from bench.occlusion_diagnosis import refined_truth  # noqa: E402
 from brepose_ros.offline.hidden_lines import SHARP  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
@@ -82,10 +83,7 @@ def oracle_scores(estimator: Estimator, frame, entry) -> tuple[float, ...]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=8)
-    parser.add_argument("--parts", nargs="*", default=["sharp_bracket", "rounded_bracket", "base_attachment"],
-                        choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clutter", "occl30+clutter"], choices=list(CONDITIONS))
+    add_scene_arguments(parser, n=8, parts=TUNING, conditions=["clutter", "occl30+clutter"])
     parser.add_argument("overrides", nargs="*", help="flat parameters, e.g. pose.inlier_pixels=3")
     args = parser.parse_args(argv)
     params = overridden_params(args.overrides)

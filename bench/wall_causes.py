@@ -32,7 +32,7 @@ sys.path.insert(0, str(REPO))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.accuracy import CONDITIONS, PARTS, scene_path, step_file  # noqa: E402
+from bench.accuracy import PARTS, add_scene_arguments, scene_path, step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.geometry import look_at_rotation  # noqa: E402
@@ -87,10 +87,7 @@ def kind_shares(frame: Frame, model_px: np.ndarray, tolerance: float) -> tuple[f
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--parts", nargs="*", default=["shaft", "screw", "motor1_holder", "wrist_mount"],
-                        choices=list(PARTS))
-    parser.add_argument("--conditions", nargs="*", default=["clean"], choices=list(CONDITIONS))
-    parser.add_argument("--n", type=int, default=6)
+    add_scene_arguments(parser, n=6, parts=["shaft", "screw", "motor1_holder", "wrist_mount"], conditions=["clean"])
     args = parser.parse_args(argv)
     params = EstimatorParams()
     p = params.pose
