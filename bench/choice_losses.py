@@ -80,7 +80,7 @@ def candidates_and_best(estimator: Estimator, frame: Frame, p: EstimatorParams, 
     gets them at parameters ``p``; without ``rivals`` the best climbed pose, polished, as
     before the rival check (main cb60954)."""
     candidates, best = estimator._candidates(frame, region_groups(frame, p.matching), p, estimator._hypotheses,
-                                             estimator._search, SERIAL, {}, time.perf_counter())
+                                             estimator._search, SERIAL, {}, time.perf_counter(), {})
     if candidates and best is None:
         best = chosen_pose(estimator, candidates, frame, p, rivals)
     return candidates, best
@@ -127,7 +127,7 @@ def classify(estimator: Estimator, frame: Frame, entry, model: ModelPoints, riva
     if not near:
         every = EstimatorParams().with_flat(p.flat() | {"search.enough_score": 1.01})
         full, _ = estimator._candidates(frame, region_groups(frame, every.matching), every, estimator._hypotheses,
-                                        estimator._search, SERIAL, {}, time.perf_counter())
+                                        estimator._search, SERIAL, {}, time.perf_counter(), {})
         stopped = any(near_truth(c.R, c.t, entry, g) for c in full)
         return row | dict(loss="stopped" if stopped else "none")
     best_near = ordered[near[0]]
