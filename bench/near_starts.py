@@ -1,9 +1,10 @@
 """Does the hypothesis refinement pull a near start in? Starts made from the truth of the
 cached bench scenes, refined as ``PoseRefiner.verify`` refines a hypothesis, with and
-without the alignment on edge pixels, then polished.
+without the alignment on edge pixels, then (``--climb``) climbed over the neighbouring
+views as ``PoseRefiner.best`` climbs a start, then polished.
 
     python bench/near_starts.py [--n 6] [--parts sharp_bracket ...] [--conditions clean clutter] \
-        [--angles 5 10 15] [--offset 0.05] [--reps 2]
+        [--angles 5 10 15] [--offset 0.05] [--reps 2] [--climb]
 
 Per image and angle, ``--reps`` starts: the truth turned by the angle about a random axis
 through the part's centre, the centre moved by ``--offset`` part diameters in a random
@@ -52,6 +53,7 @@ def main(argv=None) -> int:
     parser.add_argument("--angles", nargs="*", type=float, default=[5.0, 10.0, 15.0])
     parser.add_argument("--offset", type=float, default=0.05, help="centre offset, part diameters")
     parser.add_argument("--reps", type=int, default=2, help="starts per image and angle")
+    parser.add_argument("--climb", action="store_true", help="climb each refined start before its polish")
     args = parser.parse_args(argv)
     params = EstimatorParams()
     p = params.pose
@@ -74,7 +76,9 @@ def main(argv=None) -> int:
                                                                  hypothesis_rounds(p.refine_iterations), SERIAL,
                                                                  align=align)
                             seconds = time.perf_counter() - clock
-                            polished = refiner.polish(Candidate(float(score[0]), R[0], t[0], None), frame, p)
+                            refined = Candidate(float(score[0]), R[0], t[0], None)
+                            polished = refiner.polish(refiner.climb(refined, frame, p) if args.climb else refined,
+                                                      frame, p)
                             ok = [pose_errors(R_k, t_k, entry.R, entry.t, model, graph).success_sym
                                   for R_k, t_k in ((R[0], t[0]), (polished.R, polished.t))]
                             counts = tally[setting][angle]
@@ -84,8 +88,8 @@ def main(argv=None) -> int:
                             counts[3] += seconds
                             row.append(f"{'+' if ok[1] else '-'}{polished.score:.2f}")
                 print(f"{name} {condition} {i}: " + " ".join(row), flush=True)
-    print("\nconverged after the rounds / after the polish, of the starts; ms per start (rounds, scoring "
-          "included)\n")
+    print(f"\nconverged after the rounds / after the{' climb and the' if args.climb else ''} polish, of the starts; "
+          "ms per start (rounds, scoring included)\n")
     print("| setting | " + " | ".join(f"{a:g} deg" for a in args.angles) + " | ms |")
     print("|---|" + "---|" * (len(args.angles) + 1))
     for setting, rows in tally.items():
