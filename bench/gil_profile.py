@@ -59,7 +59,7 @@ STEPS = [
     ("search", "response and chance maps", "chances", "search.py"),
     ("search", "coarse kernel", "run", "search.py"),  # the chunk calling the numba kernel
     ("search", "kept templates", "best", "search.py"),
-    ("matching", "seeds' windows", "_seed_job", "hypotheses.py"),
+    ("matching", "seeds' windows", "_seed_jobs", "hypotheses.py"),
 ]
 #: the stage of a sample: the first function on its stack inside ``Estimator.estimate`` named
 #: here, by py-spy's qualified name (``Class.method``) before the plain one

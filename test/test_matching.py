@@ -183,22 +183,30 @@ def test_mod_is_np_mod_to_the_bit():
 
 
 def test_a_job_aligns_alike_alone_and_among_others():
-    """Jobs are independent: a job's similarity and coverage do not depend on the batch
-    (the worker threads split a region's jobs anywhere)."""
+    """Jobs are independent: a job's similarity and coverage do not depend on the batch, nor
+    on the regions of the batch's other jobs (the worker threads split the jobs anywhere, the
+    search's seeds are a region each)."""
     rng = np.random.default_rng(11)
     views = [random_shape(rng, n) * 0.5 for n in (4, 12, 7, 12)]
-    image = matching.describe(np.concatenate([similarity(views[1], 1.1, 0.4, np.array([0.05, 0.0])),
-                                              random_shape(rng, 6) * 0.5]))
+    image = np.concatenate([similarity(views[1], 1.1, 0.4, np.array([0.05, 0.0])), random_shape(rng, 6) * 0.5])
+    other = np.concatenate([similarity(views[2], 0.9, -1.0, np.array([0.0, 0.1])), random_shape(rng, 3) * 0.5])
+    regions = np.concatenate([image, other])
+    region_offsets = np.array([0, len(image), len(image) + len(other)])
     segments = np.concatenate(views)
     offsets = np.concatenate([[0], np.cumsum([len(v) for v in views])])
-    jobs, phi = np.array([0, 1, 2, 3, 1]), np.array([0.2, 0.4, 4.0, 1.0, 0.4 + np.pi])
-    together = matching.align(segments, offsets, jobs, phi, image, MatchParams())
-    assert 1 in together.jobs  # the view the image shows, at its rotation
-    k = list(together.jobs).index(1)
-    assert together.scale[k] == pytest.approx(1.1, abs=1e-6) and together.angle[k] == pytest.approx(0.4, abs=1e-6)
-    assert together.coverage[k] > 0.7
+    jobs, phi = np.array([0, 1, 2, 2, 3, 1]), np.array([0.2, 0.4, 4.0, -1.0, 1.0, 0.4 + np.pi])
+    of_region = np.array([0, 0, 0, 1, 0, 1])
+    together = matching.align(segments, offsets, jobs, phi, regions, region_offsets, of_region, MatchParams())
+    for j, scale, angle in ((1, 1.1, 0.4), (3, 0.9, -1.0)):  # the views the regions show, at their rotations
+        assert j in together.jobs
+        k = list(together.jobs).index(j)
+        assert together.scale[k] == pytest.approx(scale, abs=1e-6)
+        assert together.angle[k] == pytest.approx(angle, abs=1e-6)
+        assert together.coverage[k] > 0.7
     for j in range(len(jobs)):
-        alone = matching.align(segments, offsets, jobs[j:j + 1], phi[j:j + 1], image, MatchParams())
+        own = (image, other)[of_region[j]]
+        alone = matching.align(segments, offsets, jobs[j:j + 1], phi[j:j + 1], own, np.array([0, len(own)]),
+                               np.zeros(1, np.int64), MatchParams())
         assert (j in together.jobs) == (len(alone.jobs) == 1)
         if j in together.jobs:
             k = list(together.jobs).index(j)

@@ -90,3 +90,52 @@ def test_a_seed_is_matched_in_its_own_frame_and_corrected_whatever_lies_outside_
     # a seed whose window (108 px about (50, 30)) holds no segment gives nothing
     far = Hypothesis(_seed_region(np.eye(3)), 0, 0.3, phi, np.array([-0.45, -0.35]), 0.0)
     assert hypotheses.at_seeds([far], frame, 1.2, MatchParams(), SERIAL) == []
+
+
+def test_seeds_matched_together_give_what_each_gives_alone_to_the_bit():
+    """``at_seeds`` finds all seeds' windows as arrays and matches them in one compiled call
+    per worker thread: each seed's hypothesis is still the one it gives alone, whatever the
+    other seeds (among them one with no segment in its window and one whose window, the
+    square, gives no similarity) and the threads."""
+    from brepose_ros.camera import virtual_alignment
+    from brepose_ros.online.hypotheses import Hypothesis, TetradHypotheses
+    from brepose_ros.online.search import _seed_region
+    from brepose_ros.online.workers import SERIAL, WorkerPool
+    from test_search import bracket_outline
+
+    part = bracket_outline(0.5)
+    image = CAMERA.focal * 0.6 * part + [CAMERA.cx + 40.0, CAMERA.cy - 20.0]
+    frame = frame_of(np.concatenate([image, square((560.0, 90.0), 50.0)]))
+    hypotheses = TetradHypotheses(one_view_graph(part), MatchParams())
+    off_axis = _seed_region(virtual_alignment(np.array([40.0, -20.0]) / CAMERA.focal))
+    seeds = [Hypothesis(off_axis, 0, 0.62, 0.1, np.zeros(2), 0.0),
+             Hypothesis(_seed_region(np.eye(3)), 0, 0.3, 0.0, np.array([-0.45, -0.35]), 0.0),  # an empty window
+             Hypothesis(_seed_region(np.eye(3)), 0, 0.55, -0.15, np.array([0.07, -0.03]), 0.0),
+             Hypothesis(_seed_region(np.eye(3)), 0, 0.2, 1.0, (np.array([560.0, 90.0]) - [CAMERA.cx, CAMERA.cy])
+                        / CAMERA.focal, 0.0)]
+    alone = [h for seed in seeds for h in hypotheses.at_seeds([seed], frame, 1.2, MatchParams(), SERIAL)]
+    assert len(alone) == 2 and len(hypotheses._seed_jobs(seeds, frame, 1.2, MatchParams())) == 3
+    pool = WorkerPool(2)
+    try:
+        together = hypotheses.at_seeds(seeds, frame, 1.2, MatchParams(), pool)
+    finally:
+        pool.close()
+    assert len(together) == len(alone)
+    assert [h.region.R_align is a.region.R_align for h, a in zip(together, alone)] == [True] * 2
+    for h, a in zip(together, alone):
+        assert (h.view, h.scale, h.phi, h.coverage, h.region.scale) == (a.view, a.scale, a.phi, a.coverage,
+                                                                          a.region.scale)
+        assert h.shift.tobytes() == a.shift.tobytes() and h.region.center.tobytes() == a.region.center.tobytes()
+
+
+def test_the_virtual_alignment_is_the_rotation_between_the_axis_and_the_ray_to_the_bit():
+    """``camera.virtual_alignment`` does ``geometry.rotation_between``'s steps on floats: the
+    same matrix to the bit (signed zeros included) on the rays it sees."""
+    from brepose_ros.camera import virtual_alignment
+    from brepose_ros.geometry import rotation_between
+
+    rng = np.random.default_rng(12)
+    centers = np.concatenate([rng.normal(0.0, 0.4, (3000, 2)), [[0.0, 0.0], [-0.0, 0.0], [0.0, -0.0], [0.3, -0.0]]])
+    for center in centers:
+        want = rotation_between(np.array([0.0, 0.0, 1.0]), np.array([center[0], center[1], 1.0]))
+        assert virtual_alignment(center).tobytes() == want.tobytes()

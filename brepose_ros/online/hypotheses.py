@@ -2,18 +2,16 @@
 shifted how, explain each candidate region (seed paper section 6, ``matching``).
 
 For every region the pre-filter shortlists (view, rotation) jobs (``prefilter``); the
-jobs of a region run as one batch through the correspondence step (``matching.align``);
-each aligned job becomes a ``Hypothesis``: the similarity from the view's orthographic
+jobs, of one region or many, run in batches through the correspondence step
+(``matching.align``); each aligned job becomes a ``Hypothesis``: the similarity from the view's orthographic
 coordinates (metres) to the region's virtual image (normalised coordinates), which
 ``refinement.pose_from_similarity`` turns into a first metric pose.
 
 The worker threads (``workers.WorkerPool``, ``matching.workers``) share the pre-filter's
-views and split each region's batch of jobs between them; results do not depend on how
-the work is split.
+views and split the jobs between them; results do not depend on how the work is split.
 """
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +23,7 @@ from ..params import MatchParams
 from . import matching
 from .frame import Frame
 from .prefilter import ChamferPrefilter, orientation_histogram, orientation_spectra, rotation_candidates
-from .regions import MIN_REGION_SEGMENTS, Region, normalised_region, segments_within
+from .regions import MIN_REGION_SEGMENTS, Region, normalised_region, segment_windows
 from .workers import SERIAL, WorkerPool
 
 
@@ -53,6 +51,9 @@ class ViewLibrary:
             norm = outline_normalisation(metric)
             self.normalisation.append(norm)
             self.features.append(matching.describe(norm.apply(metric)))
+        #: the normalisations' centres (V, 2) and scales (V,) as arrays, for batches of jobs
+        self.centers = np.array([n.center for n in self.normalisation])
+        self.scales = np.array([n.scale for n in self.normalisation])
         histograms = np.stack([orientation_histogram(f.orientations, f.lengths) for f in self.features])
         self.orientation_spectra = orientation_spectra(histograms)
         #: every view's segments in one array, view v at ``offsets[v]:offsets[v + 1]``: the
@@ -106,13 +107,36 @@ class TetradHypotheses:
         return [job for jobs in per_group for job in jobs]
 
     def match(self, jobs: list[Job], p: MatchParams, pool: WorkerPool) -> list[Hypothesis]:
-        """Hypotheses of the jobs, in job order. Consecutive jobs of one region run together
-        (``_match_batch``), split into one batch per worker thread."""
-        batches = []
-        for _, run in itertools.groupby(jobs, key=lambda job: id(job[0])):
-            run = list(run)
-            batches += [run[chunk] for chunk in pool.split(len(run))]
-        return [h for batch in pool.map(lambda batch: self._match_batch(batch, p), batches) for h in batch]
+        """Hypotheses of the jobs, in job order: the jobs split into one chunk per worker
+        thread, each chunk one compiled call (``matching.align``, the GIL released) whatever
+        regions its jobs are of, each aligned job composed into the similarity view metres ->
+        virtual image. A region's jobs best come together (its geometry is then found once)."""
+        if not jobs:
+            return []
+        regions = list({id(region): region for region, _, _ in jobs}.values())  # in order of their first job
+        number = {id(region): k for k, region in enumerate(regions)}
+        of_region = np.array([number[id(region)] for region, _, _ in jobs], np.int64)
+        views = np.array([view for _, view, _ in jobs], np.int64)
+        phi = np.array([phi for _, _, phi in jobs], float)
+        segments = [region.features.segments for region in regions]
+        region_segments = np.ascontiguousarray(np.concatenate(segments))
+        region_offsets = np.concatenate([[0], np.cumsum([len(s) for s in segments])]).astype(np.int64)
+        centers = np.array([region.center for region in regions])
+        scales = np.array([region.scale for region in regions])
+        library = self._views
+
+        def chunk(rows: slice) -> list[Hypothesis]:
+            aligned = matching.align(library.segments, library.offsets, views[rows], phi[rows], region_segments,
+                                     region_offsets, of_region[rows], p)
+            view, region = views[rows][aligned.jobs], of_region[rows][aligned.jobs]
+            # compose: view metres -> view normalised -> region normalised -> virtual image
+            scale = scales[region] * aligned.scale / library.scales[view]
+            turned = np.einsum("jkl,jl->jk", matching.rotations(aligned.angle), library.centers[view])
+            shift = centers[region] + scales[region][:, None] * aligned.shift - scale[:, None] * turned
+            return [Hypothesis(regions[r], int(v), float(sc), float(a), sh, float(c))
+                    for r, v, sc, a, sh, c in zip(region, view, scale, aligned.angle, shift, aligned.coverage)]
+
+        return [h for hypotheses in pool.map(chunk, pool.split(len(jobs))) for h in hypotheses]
 
     def at_seeds(self, seeds: list[Hypothesis], frame: Frame, window: float, p: MatchParams,
                  pool: WorkerPool) -> list[Hypothesis]:
@@ -125,49 +149,41 @@ class TetradHypotheses:
         The window is the image segments whose midpoints lie within ``window`` times the
         seed's part radius of its centre; a seed with fewer than ``MIN_REGION_SEGMENTS``
         there gives nothing."""
-        jobs = [job for job in (self._seed_job(seed, frame, window, p) for seed in seeds) if job is not None]
-        return self.match(jobs, p, pool)
+        return self.match(self._seed_jobs(seeds, frame, window, p), p, pool)
 
-    def _seed_job(self, seed: Hypothesis, frame: Frame, window: float, p: MatchParams) -> Job | None:
-        """The seed's window as a region normalised so that the seed's view, normalised as
-        the views are (``ViewLibrary``) and turned by the seed's angle, lands on it."""
-        camera, R_align = frame.camera, seed.region.R_align
-        ray = R_align @ np.array([seed.shift[0], seed.shift[1], 1.0])  # through the model centre
-        center_px = camera.project(ray)
-        radius_px = window * seed.scale * self.graph.model_diameter * camera.focal / 2
-        inside = segments_within(frame, center_px, radius_px)
-        if len(inside) < MIN_REGION_SEGMENTS:
-            return None
-        inside = inside[matching.longest(frame.segments_n[inside], p.max_image_segments)]
-        norm = self._views.normalisation[seed.view]
-        turn = matching.rotations(np.array([seed.phi]))[0]
+    def _seed_jobs(self, seeds: list[Hypothesis], frame: Frame, window: float, p: MatchParams) -> list[Job]:
+        """Each seed's window as a region normalised so that the seed's view, normalised as
+        the views are (``ViewLibrary``) and turned by the seed's angle, lands on it. The
+        windows, centres and scales of all seeds are found at once, as arrays: one seed at a
+        time, their small numpy steps cost ~50 us a seed, 128 seeds an image."""
+        if not seeds:
+            return []
+        camera = frame.camera
+        R_align = np.stack([seed.region.R_align for seed in seeds])
+        shift = np.array([seed.shift for seed in seeds])
+        scale = np.array([seed.scale for seed in seeds])
+        view = np.array([seed.view for seed in seeds], np.int64)
+        # the rays through the model centres (a stacked matmul is each seed's own product, to the bit)
+        rays = R_align @ np.concatenate([shift, np.ones((len(seeds), 1))], axis=1)[:, :, None]
+        radius_px = window * scale * self.graph.model_diameter * camera.focal / 2
+        inside = segment_windows(frame, camera.project(rays[:, :, 0]), radius_px)
+        # each window's longest segments: all segments ranked once, each window taking its first
+        ranked = matching.longest(frame.segments_n, len(frame.segments_n))
+        taken = inside[:, ranked] & (np.cumsum(inside[:, ranked], axis=1) <= p.max_image_segments)
         # view metres -> virtual image: scale R(phi) x + shift; the view's normalisation
         # centre and scale carried through it give the region's
-        center = seed.shift + seed.scale * turn @ norm.center
-        scale = seed.scale * norm.scale
-        virtual = to_virtual(frame.segments_n[inside], R_align)
-        region = Region(R_align=R_align, center=center, scale=scale,
-                        features=matching.describe((virtual - center) / scale), orientation_histogram=None,
-                        distance_maps=None)
-        return region, seed.view, seed.phi
-
-    def _match_batch(self, jobs: list[Job], p: MatchParams) -> list[Hypothesis]:
-        """``matching.align`` for jobs of one region at once (one compiled call, the GIL
-        released), each aligned job composed into the similarity view metres -> virtual image."""
-        region = jobs[0][0]
-        views = np.array([view for _, view, _ in jobs], np.int64)
-        phi = np.array([phi for _, _, phi in jobs])
-        aligned = matching.align(self._views.segments, self._views.offsets, views, phi, region.features, p)
-        if len(aligned.jobs) == 0:
-            return []
-        views = views[aligned.jobs]
-        # compose: view metres -> view normalised -> region normalised -> virtual image
-        norm_v = [self._views.normalisation[v] for v in views]
-        scale = region.scale * aligned.scale / np.array([n.scale for n in norm_v])
-        turned = np.einsum("jkl,jl->jk", matching.rotations(aligned.angle), np.array([n.center for n in norm_v]))
-        shift = region.center + region.scale * aligned.shift - scale[:, None] * turned
-        return [Hypothesis(region, int(views[j]), float(scale[j]), float(aligned.angle[j]), shift[j],
-                           float(aligned.coverage[j])) for j in range(len(views))]
+        turn = scale[:, None, None] * matching.rotations(np.array([seed.phi for seed in seeds]))
+        center = shift + (turn @ self._views.centers[view][:, :, None])[:, :, 0]
+        region_scale = scale * self._views.scales[view]
+        jobs = []
+        for k in np.nonzero(inside.sum(axis=1) >= MIN_REGION_SEGMENTS)[0]:
+            seed = seeds[k]
+            virtual = to_virtual(frame.segments_n[ranked[taken[k]]], seed.region.R_align)
+            region = Region(R_align=seed.region.R_align, center=center[k], scale=float(region_scale[k]),
+                            features=matching.describe((virtual - center[k]) / region_scale[k]),
+                            orientation_histogram=None, distance_maps=None)
+            jobs.append((region, seed.view, seed.phi))
+        return jobs
 
 
 def best_covered(hypotheses: list[Hypothesis], count: int) -> list[Hypothesis]:

@@ -93,33 +93,42 @@ class Alignment:
     coverage: np.ndarray  # (K,) F-measure of the two-way edge coverage after alignment
 
 
-def align(segments: np.ndarray, offsets: np.ndarray, views: np.ndarray, phi: np.ndarray, image: SegmentFeatures,
-          p: MatchParams) -> Alignment:
-    """The correspondence step for a batch of jobs against one image region: job j is view
-    ``views[j]`` (segments ``segments[offsets[v]:offsets[v + 1]]``, normalised) turned by
-    ``phi[j]``. Kuhn-Munkres at that rotation, the similarity its nearest pairs imply, a
+def align(segments: np.ndarray, offsets: np.ndarray, views: np.ndarray, phi: np.ndarray, region_segments: np.ndarray,
+          region_offsets: np.ndarray, regions: np.ndarray, p: MatchParams) -> Alignment:
+    """The correspondence step for a batch of jobs: job j is view ``views[j]`` (segments
+    ``segments[offsets[v]:offsets[v + 1]]``, normalised) turned by ``phi[j]`` against image
+    region ``regions[j]`` (segments ``region_segments[region_offsets[r]:region_offsets[r + 1]]``,
+    normalised). Kuhn-Munkres at that rotation, the similarity its nearest pairs imply, a
     second assignment with that similarity applied (kept where it costs less), then the
     similarity polished by 2D ICP against the region's lines and the aligned sets ranked by
     coverage. Jobs whose pairs give no similarity drop out. One compiled call, the GIL
-    released throughout (``align_kernel``)."""
+    released throughout (``align_kernel``), whatever regions the jobs are of: a seed of the
+    search is a region with one job, and one call per seed cost more than its matching."""
     found, out = np.zeros(len(views), np.bool_), np.zeros((len(views), 5))
     weights = np.array([p.weight_length, p.weight_midpoint, p.weight_orientation, p.weight_perpendicular])
-    align_kernel(segments, offsets, np.asarray(views, np.int64), np.asarray(phi, float), image.segments, weights,
-                 p.empty_coefficient, p.nearest_threshold, p.coverage_tolerance, cos_deg(NEAREST_MAX_ANGLE_DEG),
-                 cos_deg(COVERAGE_MAX_ANGLE_DEG), found, out)
+    align_kernel(segments, offsets, np.asarray(views, np.int64), np.asarray(phi, float), region_segments,
+                 region_offsets, np.asarray(regions, np.int64), weights, p.empty_coefficient, p.nearest_threshold,
+                 p.coverage_tolerance, cos_deg(NEAREST_MAX_ANGLE_DEG), cos_deg(COVERAGE_MAX_ANGLE_DEG), found, out)
     jobs = np.nonzero(found)[0]
     return Alignment(jobs, out[jobs, 0], out[jobs, 1], out[jobs, 2:4], out[jobs, 4])
 
 
 @njit(nogil=True, cache=True)
-def align_kernel(segments: np.ndarray, offsets: np.ndarray, views: np.ndarray, phi: np.ndarray, image: np.ndarray,
-                 weights: np.ndarray, empty_coefficient: float, nearest_threshold: float, tolerance: float,
-                 line_cos: float, coverage_cos: float, found: np.ndarray, out: np.ndarray) -> None:
+def align_kernel(segments: np.ndarray, offsets: np.ndarray, views: np.ndarray, phi: np.ndarray,
+                 region_segments: np.ndarray, region_offsets: np.ndarray, regions: np.ndarray, weights: np.ndarray,
+                 empty_coefficient: float, nearest_threshold: float, tolerance: float, line_cos: float,
+                 coverage_cos: float, found: np.ndarray, out: np.ndarray) -> None:
     """``align`` for every job: found[j] whether job j gave a similarity, out[j] its
     (scale, angle, shift x, shift y, coverage F-measure)."""
+    region = -1
+    image = region_segments[:0]
     i_geometry = _geometry(image)
-    i_lengths = i_geometry[0]
     for j in range(len(views)):
+        if regions[j] != region:  # a region's jobs come together: its geometry once for them
+            region = regions[j]
+            image = region_segments[region_offsets[region]:region_offsets[region + 1]]
+            i_geometry = _geometry(image)
+        i_lengths = i_geometry[0]
         model = segments[offsets[views[j]]:offsets[views[j] + 1]]
         m_geometry = _geometry(model)
         cost, index, nearest = _assignment(m_geometry, i_geometry, phi[j], weights, empty_coefficient,

@@ -52,8 +52,14 @@ def region_groups(frame: Frame, p: MatchParams) -> list[np.ndarray]:
 def segments_within(frame: Frame, center_px: np.ndarray, radius_px: float) -> np.ndarray:
     """Indices of the segments whose midpoints lie within ``radius_px`` of ``center_px``: the
     window about a place the template search found (``search``)."""
+    return np.nonzero(segment_windows(frame, np.reshape(center_px, (1, 2)), np.array([radius_px]))[0])[0]
+
+
+def segment_windows(frame: Frame, centers_px: np.ndarray, radii_px: np.ndarray) -> np.ndarray:
+    """(K, N) masks of ``segments_within`` for K centres (K, 2) and radii (K,) at once."""
     middle = frame.segments_px.mean(axis=1)
-    return np.nonzero(np.hypot(middle[:, 0] - center_px[0], middle[:, 1] - center_px[1]) < radius_px)[0]
+    return (np.hypot(middle[:, 0] - centers_px[:, :1], middle[:, 1] - centers_px[:, 1:])
+            < np.asarray(radii_px)[:, None])
 
 
 def normalised_region(indices: np.ndarray, frame: Frame, p: MatchParams) -> Region | None:
