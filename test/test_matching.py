@@ -87,6 +87,26 @@ def histogram(features):
     return prefilter.orientation_histogram(features.orientations, features.lengths)
 
 
+def test_ranked_peaks_are_repeated_argmax_over_the_cyclic_peaks():
+    """The compiled ranking gives what ``count`` rounds of np.argmax over the peaks did (each
+    taken peak then -inf): plateaus and ties to the lower bin, bin 0 once the peaks run out."""
+    rng = np.random.default_rng(13)
+    corr = np.round(rng.normal(size=(400, 72)), 1)  # ties and plateaus
+    corr[:3] = 0.0  # flat: every bin a peak
+    corr[3] = np.arange(72.0)  # one peak, at the last bin (its right neighbour is bin 0)
+    for count in (1, 3, 40):
+        wrapped = np.concatenate([corr[:, -1:], corr, corr[:, :1]], axis=1)
+        peaks = np.where((corr >= wrapped[:, :-2]) & (corr >= wrapped[:, 2:]), corr, -np.inf)
+        want = np.empty((len(corr), count), np.int64)
+        for k in range(count):
+            want[:, k] = best = np.argmax(peaks, axis=1)
+            peaks[np.arange(len(corr)), best] = -np.inf
+        got = np.empty((len(corr), count), np.int64)
+        prefilter.ranked_peaks(corr, count, got)
+        assert np.array_equal(got, want)
+    assert got[3, :3].tolist() == [71, 0, 0]
+
+
 def test_rotation_candidates_contain_true_rotation():
     rng = np.random.default_rng(3)
     segs = random_shape(rng)

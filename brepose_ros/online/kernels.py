@@ -272,9 +272,10 @@ def warm_up() -> None:
     drawn = square[..., :2] * 1.01
     refine_rounds_kernel(R, t, np.array([[0.0, 0.0, -1.0]]), np.zeros(3), np.array([0, 4]), square, drawn,
                          np.ones((4, 3)), 0.01, np.array([2.0, 1.0]), 1, 1, 0.9)
-    from . import matching  # here, not at the top: matching imports this module
+    from . import matching, prefilter  # here, not at the top: they import this module
     matching.align(segments, np.array([0, 2]), np.zeros(1, np.int64), np.zeros(1), segments, np.array([0, 2]),
                    np.zeros(1, np.int64), MatchParams())
+    prefilter.ranked_peaks(np.zeros((1, 4)), 1, np.empty((1, 1), np.int64))
     phis = np.zeros((1, 2), np.float32)
     chamfer_scores_kernel(np.zeros((6, 4, 4), np.float32), np.zeros((1, 2, 2), np.float32),
                           np.zeros((1, 2), np.float32), 1, np.zeros(1, np.int64), phis, np.cos(phis), np.sin(phis),
