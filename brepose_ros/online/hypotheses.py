@@ -107,10 +107,11 @@ class TetradHypotheses:
         return [job for jobs in per_group for job in jobs]
 
     def match(self, jobs: list[Job], p: MatchParams, pool: WorkerPool) -> list[Hypothesis]:
-        """Hypotheses of the jobs, in job order: the jobs split into one chunk per worker
-        thread, each chunk one compiled call (``matching.align``, the GIL released) whatever
-        regions its jobs are of, each aligned job composed into the similarity view metres ->
-        virtual image. A region's jobs best come together (its geometry is then found once)."""
+        """Hypotheses of the jobs, in job order: the jobs dealt into one chunk per worker
+        thread (each thread a share of every region's, whose jobs cost alike), each chunk one
+        compiled call (``matching.align``, the GIL released) whatever regions its jobs are of,
+        each aligned job composed into the similarity view metres -> virtual image. A region's
+        jobs best come together (its geometry is then found once per run of them)."""
         if not jobs:
             return []
         regions = list({id(region): region for region, _, _ in jobs}.values())  # in order of their first job
@@ -125,7 +126,7 @@ class TetradHypotheses:
         scales = np.array([region.scale for region in regions])
         library = self._views
 
-        def chunk(rows: slice) -> list[Hypothesis]:
+        def chunk(rows: slice) -> tuple[np.ndarray, list[Hypothesis]]:
             aligned = matching.align(library.segments, library.offsets, views[rows], phi[rows], region_segments,
                                      region_offsets, of_region[rows], p)
             view, region = views[rows][aligned.jobs], of_region[rows][aligned.jobs]
@@ -133,10 +134,13 @@ class TetradHypotheses:
             scale = scales[region] * aligned.scale / library.scales[view]
             turned = np.einsum("jkl,jl->jk", matching.rotations(aligned.angle), library.centers[view])
             shift = centers[region] + scales[region][:, None] * aligned.shift - scale[:, None] * turned
-            return [Hypothesis(regions[r], int(v), float(sc), float(a), sh, float(c))
-                    for r, v, sc, a, sh, c in zip(region, view, scale, aligned.angle, shift, aligned.coverage)]
+            return np.arange(len(jobs))[rows][aligned.jobs], [
+                Hypothesis(regions[r], int(v), float(sc), float(a), sh, float(c))
+                for r, v, sc, a, sh, c in zip(region, view, scale, aligned.angle, shift, aligned.coverage)]
 
-        return [h for hypotheses in pool.map(chunk, pool.split(len(jobs))) for h in hypotheses]
+        chunks = pool.map(chunk, pool.deal(len(jobs)))
+        hypotheses = [h for _, hypotheses in chunks for h in hypotheses]
+        return [hypotheses[k] for k in np.argsort(np.concatenate([index for index, _ in chunks]))]
 
     def at_seeds(self, seeds: list[Hypothesis], frame: Frame, window: float, p: MatchParams,
                  pool: WorkerPool) -> list[Hypothesis]:

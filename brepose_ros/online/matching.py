@@ -106,9 +106,11 @@ def align(segments: np.ndarray, offsets: np.ndarray, views: np.ndarray, phi: np.
     search is a region with one job, and one call per seed cost more than its matching."""
     found, out = np.zeros(len(views), np.bool_), np.zeros((len(views), 5))
     weights = np.array([p.weight_length, p.weight_midpoint, p.weight_orientation, p.weight_perpendicular])
-    align_kernel(segments, offsets, np.asarray(views, np.int64), np.asarray(phi, float), region_segments,
-                 region_offsets, np.asarray(regions, np.int64), weights, p.empty_coefficient, p.nearest_threshold,
-                 p.coverage_tolerance, cos_deg(NEAREST_MAX_ANGLE_DEG), cos_deg(COVERAGE_MAX_ANGLE_DEG), found, out)
+    # contiguous, as the kernel was warmed with (a dealt chunk of jobs is strided)
+    align_kernel(segments, offsets, np.ascontiguousarray(views, np.int64), np.ascontiguousarray(phi, float),
+                 region_segments, region_offsets, np.ascontiguousarray(regions, np.int64), weights,
+                 p.empty_coefficient, p.nearest_threshold, p.coverage_tolerance, cos_deg(NEAREST_MAX_ANGLE_DEG),
+                 cos_deg(COVERAGE_MAX_ANGLE_DEG), found, out)
     jobs = np.nonzero(found)[0]
     return Alignment(jobs, out[jobs, 0], out[jobs, 1], out[jobs, 2:4], out[jobs, 4])
 
