@@ -111,7 +111,8 @@ def known_size(params: EstimatorParams, graph, camera, entry, ratio: float) -> E
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_scene_arguments(parser, n=12, parts=["sharp_bracket", "base_attachment"], conditions=["clean", "occl30+clutter"], start=True)
+    add_scene_arguments(parser, n=12, parts=["sharp_bracket", "base_attachment"],
+                        conditions=["clean", "occl30+clutter"], start=True)
     parser.add_argument("--variant", nargs="*", default=["tetrad", "search", "both"])
     parser.add_argument("--span", type=float, nargs=2, default=SPAN, metavar=("LOW", "HIGH"),
                         help="the part's projected size, share of the image's smaller side (bench/accuracy.py's)")

@@ -59,7 +59,8 @@ def version(package: str):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--base", required=True, help="commit to compare this worktree with")
-    add_scene_arguments(parser, n=6, parts=["sharp_bracket", "base_attachment"], conditions=["clean", "clutter", "occl30+clutter"])
+    add_scene_arguments(parser, n=6, parts=["sharp_bracket", "base_attachment"],
+                        conditions=["clean", "clutter", "occl30+clutter"])
     parser.add_argument("--label", default="run")
     args = parser.parse_args(argv)
     cache = REPO / "data" / "bench"
