@@ -235,7 +235,7 @@ def test_starts_climbed_and_polished_together_end_as_each_alone(bracket, estimat
     them, the later starts are not climbed (``_climbed`` stops there)."""
     import dataclasses
     from brepose_ros.online.frame import Frame
-    from brepose_ros.online.refinement import Candidate, distinct_poses
+    from brepose_ros.online.refinement import distinct_poses
     from brepose_ros.online.scoring import CLEAR_SCORE, scored_tolerances
     from brepose_ros.online.workers import SERIAL, WorkerPool
 
