@@ -194,6 +194,26 @@ def test_an_edge_pixel_pairs_with_a_model_point_only_if_it_runs_alike():
     assert not kernels.nearest_like_edge(*evidence.nearest_like(), vertical, 200.0, 121.0, 2.0)[0]
 
 
+def test_chance_is_the_share_of_near_pixels_in_the_window_to_the_bit():
+    """EdgeEvidence.chance (the window's counts of the uint8 map divided in float32) equals
+    the normalised box filter of the map made float, bit for bit, border and all: the
+    scores were measured on that filter. OpenCV's normalised filter straight from uint8
+    rounds some shares differently, so a like-for-like swap would have failed here."""
+    rng = np.random.default_rng(5)
+    gray = np.full((240, 320), 80, np.uint8)
+    for _ in range(60):
+        (x0, y0), (x1, y1) = rng.uniform([0, 0], [320, 240], size=(2, 2))
+        cv2.line(gray, (int(x0), int(y0)), (int(x1), int(y1)), int(rng.integers(150, 256)), 2)
+    evidence = scoring.EdgeEvidence(*edge_stage(gray.astype(np.float32)))
+    window = (scoring.EdgeEvidence.CHANCE_WINDOW,) * 2
+    near, chance = evidence.near_like(2.0).view(np.uint8), evidence.chance(2.0)
+    assert len(np.unique(chance)) > 100  # many counts, sparse to dense
+    for b in range(scoring.EdgeEvidence.BINS):
+        share = cv2.boxFilter(near[b, 1:-1, 1:-1].astype(np.float32), -1, window, borderType=cv2.BORDER_REFLECT)
+        assert np.array_equal(chance[b, 1:-1, 1:-1].view(np.int32), share.view(np.int32))
+    assert not chance[:, 0].any() and not chance[:, :, -1].any()
+
+
 def test_maps_built_per_bin_on_threads_equal_those_built_on_first_use():
     """EdgeEvidence.bin_jobs / adopt (Frame.detect's split of the maps over the worker
     threads) give the nearest-edge table and the maps at each tolerance to the bit."""

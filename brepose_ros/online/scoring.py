@@ -507,9 +507,13 @@ class EdgeEvidence:
     def _boxed(self, near: np.ndarray, out: np.ndarray) -> None:
         """The share of set pixels of one bin's ``near_like`` map (uint8, no border) in the
         ``CHANCE_WINDOW`` square about each pixel, written into ``out`` (float32, a view like
-        ``_dilated``'s)."""
-        cv2.boxFilter(near.astype(np.float32), -1, (self.CHANCE_WINDOW, self.CHANCE_WINDOW), dst=out,
-                      borderType=cv2.BORDER_REFLECT)
+        ``_dilated``'s). The window's counts straight from the uint8 map, divided by its area
+        in float32: the same shares to the bit as the normalised filter of the map made
+        float (every count 0 to 961 rounds alike), a third cheaper; OpenCV's normalised
+        filter of the uint8 map rounds differently."""
+        window = (self.CHANCE_WINDOW, self.CHANCE_WINDOW)
+        cv2.boxFilter(near, cv2.CV_32F, window, dst=out, normalize=False, borderType=cv2.BORDER_REFLECT)
+        np.divide(out, np.float32(self.CHANCE_WINDOW**2), out=out)
 
 
 @lru_cache(maxsize=16)
