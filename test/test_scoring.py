@@ -199,12 +199,7 @@ def test_chance_is_the_share_of_near_pixels_in_the_window_to_the_bit():
     the normalised box filter of the map made float, bit for bit, border and all: the
     scores were measured on that filter. OpenCV's normalised filter straight from uint8
     rounds some shares differently, so a like-for-like swap would have failed here."""
-    rng = np.random.default_rng(5)
-    gray = np.full((240, 320), 80, np.uint8)
-    for _ in range(60):
-        (x0, y0), (x1, y1) = rng.uniform([0, 0], [320, 240], size=(2, 2))
-        cv2.line(gray, (int(x0), int(y0)), (int(x1), int(y1)), int(rng.integers(150, 256)), 2)
-    evidence = scoring.EdgeEvidence(*edge_stage(gray.astype(np.float32)))
+    evidence = scoring.EdgeEvidence(*edge_stage(random_lines(5, (240, 320), 60)))
     window = (scoring.EdgeEvidence.CHANCE_WINDOW,) * 2
     near, chance = evidence.near_like(2.0).view(np.uint8), evidence.chance(2.0)
     assert len(np.unique(chance)) > 100  # many counts, sparse to dense
@@ -217,12 +212,7 @@ def test_chance_is_the_share_of_near_pixels_in_the_window_to_the_bit():
 def test_maps_built_per_bin_on_threads_equal_those_built_on_first_use():
     """EdgeEvidence.bin_jobs / adopt (Frame.detect's split of the maps over the worker
     threads) give the nearest-edge table and the maps at each tolerance to the bit."""
-    rng = np.random.default_rng(4)
-    gray = np.full((240, 320), 80, np.uint8)
-    for _ in range(60):
-        (x0, y0), (x1, y1) = rng.uniform([0, 0], [320, 240], size=(2, 2))
-        cv2.line(gray, (int(x0), int(y0)), (int(x1), int(y1)), int(rng.integers(150, 256)), 2)
-    stage = edge_stage(gray.astype(np.float32))
+    stage = edge_stage(random_lines(4, (240, 320), 60))
     prepared, lazy = scoring.EdgeEvidence(*stage), scoring.EdgeEvidence(*stage)
     pool = WorkerPool(2)
     try:
@@ -243,12 +233,7 @@ def test_the_nearest_edge_table_names_each_pixels_nearest_like_edge_pixel():
     OpenCV's labelled distance transform assigns (its labels looked up in the like map
     itself, as a plain reference), and that pixel is as near as the nearest to within the
     5x5 chamfer's few per cent."""
-    rng = np.random.default_rng(5)
-    gray = np.full((120, 160), 80, np.uint8)
-    for _ in range(25):
-        (x0, y0), (x1, y1) = rng.uniform([0, 0], [160, 120], size=(2, 2))
-        cv2.line(gray, (int(x0), int(y0)), (int(x1), int(y1)), int(rng.integers(150, 256)), 2)
-    evidence = scoring.EdgeEvidence(*edge_stage(gray.astype(np.float32)))
+    evidence = scoring.EdgeEvidence(*edge_stage(random_lines(5, (120, 160), 25)))
     labels, table = evidence.nearest_like()
     rows, cols = np.mgrid[:120, :160]
     for b in range(evidence.BINS):
@@ -262,6 +247,16 @@ def test_the_nearest_edge_table_names_each_pixels_nearest_like_edge_pixel():
         assert np.array_equal(nearest, by_label[reference_labels])
         exact = cv2.distanceTransform(1 - like, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         assert (np.hypot(nearest[..., 0] - cols, nearest[..., 1] - rows) <= 1.05 * exact + 1e-6).all()
+
+
+def random_lines(seed, shape, count):
+    """A float32 gray image of ``count`` random bright lines, 2 px wide, on a dark ground."""
+    rng = np.random.default_rng(seed)
+    gray = np.full(shape, 80, np.uint8)
+    for _ in range(count):
+        (x0, y0), (x1, y1) = rng.uniform([0, 0], [shape[1], shape[0]], size=(2, 2))
+        cv2.line(gray, (int(x0), int(y0)), (int(x1), int(y1)), int(rng.integers(150, 256)), 2)
+    return gray.astype(np.float32)
 
 
 def edge_stage(gray):
