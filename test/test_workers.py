@@ -6,6 +6,7 @@ import threading
 import time
 
 import cv2
+import numpy as np
 import pytest
 
 from brepose_ros.offline.compiler import compile_aspect_graph
@@ -71,6 +72,15 @@ def test_deal_hands_every_index_out_once_round_robin(size, count, dealt):
     chunks = pool.deal(count)
     pool.close()
     assert [list(range(count))[c] for c in chunks] == dealt
+
+
+def test_map_dealt_puts_every_chunks_arrays_back_in_order():
+    pool = WorkerPool(2)
+    values = np.arange(7.0)
+    index, squares = pool.map_dealt(lambda which: (values[which], values[which] ** 2), len(values))
+    pool.close()
+    assert index.tolist() == values.tolist()  # dealt 0 2 4 6 / 1 3 5, back in place
+    assert squares.tolist() == (values ** 2).tolist()
 
 
 def test_zero_workers_means_one_per_core():

@@ -358,12 +358,7 @@ class PoseRefiner:
                 R_c[kept], t_c[kept], scores[kept] = R_n[kept], t_n[kept], new[kept]
             return R_c, t_c, scores, first
 
-        chunks = pool.deal(len(R))
-        out = tuple(np.empty((len(R),) + shape) for shape in ((3, 3), (3,), (), ()))  # R, t, scores, first
-        for which, part in zip(chunks, pool.map(chunk, chunks)):
-            for whole, piece in zip(out, part):
-                whole[which] = piece
-        return out
+        return pool.map_dealt(chunk, len(R))  # R, t, scores, first
 
     def align(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams) -> tuple[np.ndarray, np.ndarray]:
         """B poses (B, 3, 3), (B, 3) aligned on the edge pixels with radii from wide to
@@ -498,14 +493,11 @@ class PoseRefiner:
                                   covariance_out=covariance)
             return R, t, pose_scores(self.graph, R, t, frame, p), covariance
 
-        chunks = pool.deal(len(chosen))
-        out: list[Candidate | None] = [None] * len(chosen)
-        for which, (R, t, scores, covariances) in zip(chunks, pool.map(chunk, chunks)):
-            for k, R_k, t_k, score, covariance in zip(range(len(chosen))[which], R, t, scores, covariances):
-                best = chosen[k]
-                kept = Candidate(float(score), R_k, t_k, best.hypothesis) if score >= best.score - POLISH_SCORE_SLACK \
-                    else best
-                out[k] = dataclasses.replace(kept, covariance=covariance if np.isfinite(covariance).all() else None)
+        out = []
+        for best, R_k, t_k, score, covariance in zip(chosen, *pool.map_dealt(chunk, len(chosen))):
+            kept = Candidate(float(score), R_k, t_k, best.hypothesis) if score >= best.score - POLISH_SCORE_SLACK \
+                else best
+            out.append(dataclasses.replace(kept, covariance=covariance if np.isfinite(covariance).all() else None))
         return out
 
     def refine(self, R: np.ndarray, t: np.ndarray, frame: Frame, p: PoseParams,

@@ -15,6 +15,8 @@ import os
 from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Callable, Sequence, TypeVar
 
+import numpy as np
+
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -80,6 +82,18 @@ class WorkerPool:
         which contiguous chunks (``split``) do not."""
         chunks = max(1, min(self.size, count))
         return [slice(k, count, chunks) for k in range(chunks)]
+
+    def map_dealt(self, function: Callable[[slice], tuple[np.ndarray, ...]], count: int) -> tuple[np.ndarray, ...]:
+        """``range(count)`` dealt between the threads (``deal``), ``function`` of each slice
+        giving a tuple of float arrays whose first axis runs over the slice; the tuple's arrays
+        whole, in the order of ``range(count)``."""
+        chunks = self.deal(count)
+        parts = self.map(function, chunks)
+        out = tuple(np.empty((count,) + np.shape(piece)[1:]) for piece in parts[0])
+        for which, part in zip(chunks, parts):
+            for whole, piece in zip(out, part):
+                whole[which] = piece
+        return out
 
     def close(self) -> None:
         if self._pool is not None:
