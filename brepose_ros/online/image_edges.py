@@ -83,8 +83,7 @@ def edge_pixels(image: np.ndarray, params: EdgeParams) -> ImageEdges:
     if params.colour and _is_colour(image):
         dx, dy, thresholds = colour_gradients(image, gray, params)
     else:
-        dx, dy = gradients(gray, params)
-        thresholds = canny_thresholds(cv2.magnitude(dx, dy), params)
+        (dx, dy), thresholds = gradients(gray, params), None  # canny_from_gradients' adaptive ones
     return ImageEdges(gray, dx, dy, canny_from_gradients(dx, dy, params, thresholds), np.zeros((0, 2, 2)),
                       np.zeros((0, 2, 2)))
 
