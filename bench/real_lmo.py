@@ -25,8 +25,10 @@ Diagnostics of what real light does to the method, per target:
 * ``truth``: the estimator's score (``scoring.pose_scores``: ``EdgeEvidence.shares`` on the
   Canny edge pixels, the F-measure of the share of the model confirmed beyond chance and
   the share of the seen image edges explained, times its significance) of the ground-truth
-  pose. When a wrong estimate scores higher, the score is fooled; when the truth scores
-  higher, the search missed it. On the photos the ground truth lies 1-3 px off the image's
+  pose, on the edges the estimator saw (``Estimator.part_frame``: within the part's colour
+  regions, ``edges.colour_regions``, of the scanned meshes' vertex colours). When a wrong
+  estimate scores higher, the score is fooled; when the truth scores higher, the search
+  missed it. On the photos the ground truth lies 1-3 px off the image's
   edges (the truth's support at 2 px 0.43, at 4 px 0.68), so the truth scores far below the
   pose the refinement makes of it: ``near score`` is the score of the near-truth start after
   the polish (below), and ``near wins`` counts the wrong estimates it outscores (there the
@@ -160,7 +162,10 @@ def graph_of(obj: int, step_deg: float) -> AspectGraph:
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         compile_aspect_graph(mesh, step_deg=step_deg, units="mm", workers=2).save(path)
-    return AspectGraph.load(path, step_path=mesh)
+    graph = AspectGraph.load(path, step_path=mesh)
+    if graph.colour_histogram is None:  # cached before graphs kept a mesh's colour: the mesh has it
+        graph = dataclasses.replace(graph, colour_histogram=load_mesh(mesh, "mm").colour_histogram)
+    return graph
 
 
 def crop(image: np.ndarray, camera: Camera, box) -> tuple[np.ndarray, Camera]:
@@ -252,7 +257,6 @@ def main(argv=None) -> int:
     if args.render:
         images = {f: render(camera, [Placed(meshes[t.obj], t.R, t.t) for t in targets if t.frame == f],
                             background=RENDER_BACKGROUND, color=True).image for f in frames}
-    frame_of = {f: Frame.of(detect_edges(images[f], params.edges), camera) for f in frames}
     working_range = {f: known_range(targets, f, args.known_range) for f in frames}
     tolerance = params.pose.inlier_pixels
     overlays = OUT / ("overlays" + ("_render" if args.render else "") + ("_crop" if args.crop else ""))
@@ -280,8 +284,9 @@ def main(argv=None) -> int:
             distance = (model.add_s if symmetric else model.add)(estimate.R, estimate.t, target.R, target.t) \
                 if found else np.inf
             error = distance * model.diameter / diameter
-            # the truth scored on what the estimator saw: the whole image or the crop
-            seen = Frame.of(detect_edges(image, params.edges), cam) if args.crop else frame_of[target.frame]
+            # the truth scored on what the estimator saw: the whole image or the crop, within
+            # the part's colour regions where they apply
+            seen = estimator.part_frame(image, cam)
             truth_px = cam.project_model(graph.seg_3d[graph.visible_segments(target.R, target.t)], target.R, target.t)
             truth = float(pose_scores(graph, target.R[None], target.t[None], seen, params.pose)[0])
             size = float(np.hypot(*np.ptp(truth_px.reshape(-1, 2), axis=0)))

@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .online.colour_regions import BINS as COLOUR_BINS
 from .online.kernels import nearest_views_kernel
 
 FORMAT = "brepose-aspect-graph"
@@ -71,6 +72,12 @@ _ARRAYS = {
     "symmetry_axes": (np.float64, ("C", "2", "3")),
     "symmetry_axis_shares": (np.float64, ("C",)),
 }
+#: arrays a file may hold or not (a graph of a part without them, or written before them,
+#: reads as before, so this is no new format version): the model's surface colour as a
+#: chromaticity histogram (``online.colour_regions``), from a mesh with vertex colours
+_OPTIONAL_ARRAYS = {
+    "colour_histogram": (np.float32, ("H", "H")),
+}
 
 #: a symmetry mapping at least this share of the edges onto edges is exact: what is left
 #: unmatched is the sampling of curves, not a feature (a cube's, box's or cylinder's turns
@@ -85,7 +92,7 @@ EXACT_SYMMETRY_SHARE = 0.96
 MAX_FILE_BYTES = 512 * 1024 * 1024
 MAX_INFLATED_BYTES = 1024 * 1024 * 1024
 #: the file holds one entry per array plus the metadata
-MAX_ENTRIES = len(_ARRAYS) + 1
+MAX_ENTRIES = len(_ARRAYS) + len(_OPTIONAL_ARRAYS) + 1
 
 _METADATA_KEYS = ("format_version", "step_sha256", "params", "units", "model_diameter", "n_faces", "arrays",
                   "content_sha256")
@@ -118,6 +125,8 @@ class AspectGraph:
     symmetry_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))
     symmetry_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
     symmetry_axis_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: (COLOUR_BINS, COLOUR_BINS) the surface's chromaticity histogram summing to 1, or None: no colour
+    colour_histogram: np.ndarray | None = None
 
     @property
     def n_views(self) -> int:
@@ -175,7 +184,8 @@ class AspectGraph:
         return self.seg_xy[self.view_slice(i)] * self.xy_scale[i] + self.xy_origin[i]
 
     def arrays(self) -> dict[str, np.ndarray]:
-        return {name: getattr(self, name) for name in _ARRAYS}
+        """The file's arrays: every one of the contract and the optional ones the graph has."""
+        return {name: getattr(self, name) for name in (*_ARRAYS, *_OPTIONAL_ARRAYS) if getattr(self, name) is not None}
 
     def _metadata(self) -> dict:
         return {
@@ -187,8 +197,8 @@ class AspectGraph:
             "units": "m",
             "model_diameter": self.model_diameter,
             "n_faces": self.n_faces,
-            "arrays": {name: {"dtype": np.dtype(dtype).str, "shape": list(getattr(self, name).shape)}
-                       for name, (dtype, _) in _ARRAYS.items()},
+            "arrays": {name: {"dtype": np.dtype((_ARRAYS | _OPTIONAL_ARRAYS)[name][0]).str, "shape": list(a.shape)}
+                       for name, a in self.arrays().items()},
         }
 
     def save(self, path: str | Path) -> Path:
@@ -277,7 +287,7 @@ def _read(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
             missing = [name for name in _ARRAYS if name not in npz.files]
             if missing:
                 raise AspectGraphError(f"{path} lacks the array(s) {', '.join(missing)}")
-            arrays = {name: npz[name] for name in _ARRAYS}
+            arrays = {name: npz[name] for name in (*_ARRAYS, *_OPTIONAL_ARRAYS) if name in npz.files}
     except AspectGraphError:
         raise
     except (zipfile.BadZipFile, zlib.error) as error:
@@ -356,8 +366,9 @@ def _check_arrays(path: Path, metadata: dict, arrays: dict[str, np.ndarray]) -> 
     n_views = directions.shape[0] if directions.ndim else -1
     n_segments = int(offsets[-1]) if offsets.ndim == 1 and len(offsets) else -1
     sizes = {"V": n_views, "V+1": n_views + 1, "S": n_segments, "Y": len(arrays["symmetry_shares"]),
-             "C": len(arrays["symmetry_axis_shares"])}
-    for name, (dtype, shape) in _ARRAYS.items():
+             "C": len(arrays["symmetry_axis_shares"]), "H": COLOUR_BINS}
+    present = {name: _OPTIONAL_ARRAYS[name] for name in _OPTIONAL_ARRAYS if name in arrays}
+    for name, (dtype, shape) in (_ARRAYS | present).items():
         a = arrays[name]
         expected = tuple(sizes[s] if s in sizes else int(s) for s in shape)
         if a.dtype != dtype or a.shape != expected:
@@ -369,6 +380,9 @@ def _check_arrays(path: Path, metadata: dict, arrays: dict[str, np.ndarray]) -> 
     if offsets[0] != 0 or np.any(np.diff(offsets) < 0):
         raise AspectGraphError(f"{path}: seg_offsets is not a non-decreasing list starting at 0")
     _check_symmetries(path, arrays)
+    colour = arrays.get("colour_histogram")
+    if colour is not None and (colour.min() < 0 or abs(float(colour.sum()) - 1.0) > 1e-3):
+        raise AspectGraphError(f"{path}: colour_histogram is not a histogram (non-negative, summing to 1)")
 
 
 def _check_symmetries(path: Path, arrays: dict[str, np.ndarray]) -> None:

@@ -82,6 +82,14 @@ class EdgeParams(Ranged):
         "the edges of a part 50-150 px across, half of whose edge length lies in shorter edges "
         "(docs/results/real_lmo.md)", 0.015, 0.0, 1.0)
     max_segments: int = doc("at most this many merged segments are kept, longest first", 200, 1, 2000)
+    colour_regions: bool = doc(
+        "parts whose model has colour (a scanned mesh with vertex colours), in colour images: only the edge pixels "
+        "in the regions of the part's own chromaticity count (online/colour_regions.py), so that the search and "
+        "the score do not look at the rest of the scene; parts without colour (STEP) and grey images always use "
+        "the whole image (docs/results/real_lmo.md)", True)
+    colour_region_threshold: float = doc(
+        "colour_regions: a pixel belongs to the part's regions when its colour's share of the model over its share "
+        "of the image (a histogram ratio, at most 1) reaches this", 0.5, 0.0, 1.0)
 
     def __post_init__(self):
         if self.detector not in DETECTORS:

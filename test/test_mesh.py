@@ -154,3 +154,15 @@ def test_a_binary_stl_header_claiming_more_than_the_limit_is_refused(tmp_path):
     path.write_bytes(b"\0" * 80 + struct.pack("<I", 10_000_000) + b"\0" * 50)
     with pytest.raises(MeshError, match="truncated or not an STL"):
         load_mesh(path, "mm")
+
+
+def test_a_meshs_vertex_colours_become_its_colour_histogram_and_none_without(tmp_path):
+    from brepose_ros.online.colour_regions import BINS
+
+    coloured = cube(50.0)
+    coloured.visual.vertex_colors = np.tile([150, 60, 50, 255], (len(coloured.vertices), 1))  # RGBA brown
+    histogram = load_mesh(write(coloured, tmp_path / "brown.ply"), "mm").colour_histogram
+    r, g = int(151 / 263 * BINS), int(61 / 263 * BINS)  # (R + 1, G + 1) / (R + G + B + 3)
+    assert histogram.sum() == pytest.approx(1.0) and np.unravel_index(histogram.argmax(), histogram.shape) == (r, g)
+    assert load_mesh(write(cube(50.0), tmp_path / "plain.ply"), "mm").colour_histogram is None
+    assert load_mesh(write(cube(50.0), tmp_path / "plain.stl"), "mm").colour_histogram is None

@@ -157,7 +157,8 @@ def _assemble(part, params, directions, rotations, views) -> AspectGraph:
         seg_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
         seg_xy=np.concatenate(seg_xy), xy_origin=np.array(xy_origin, dtype=np.float64),
         xy_scale=np.array(xy_scale, dtype=np.float64),
-        seg_3d=seg_3d, seg_kind=seg_kind), part)
+        seg_3d=seg_3d, seg_kind=seg_kind,
+        colour_histogram=part.colour_histogram if isinstance(part, MeshPart) else None), part)
 
 
 def with_symmetries(graph: AspectGraph, part) -> AspectGraph:

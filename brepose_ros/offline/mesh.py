@@ -29,6 +29,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from ..aspect_graph import file_sha256
+from ..online.colour_regions import surface_histogram
 from .cad import CadError, checked_size
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
@@ -64,6 +65,9 @@ class MeshPart:
     center: np.ndarray  # bounding-box centre, metres, model frame
     diameter: float  # bounding-box diagonal, metres (an upper bound of the true diameter)
     n_faces: int  # triangles
+    #: the surface's chromaticity histogram (``online.colour_regions.surface_histogram``) of
+    #: its vertex or face colours, None if the file has none
+    colour_histogram: np.ndarray | None = None
 
 
 def is_mesh_file(path: str | Path) -> bool:
@@ -89,7 +93,7 @@ def load_mesh(path: str | Path, units: str | None, max_bytes: int = MAX_MESH_BYT
     claimed = _check_container(path, suffix[1:], size)
     if claimed is not None and claimed > max_faces:
         raise MeshError(f"mesh {path} has {claimed} triangles, over the limit of {max_faces}; decimate it first")
-    vertices, triangles = _parse(path, suffix[1:])
+    vertices, triangles, colour = _parse(path, suffix[1:])
     if len(triangles) > max_faces:
         raise MeshError(f"mesh {path} has {len(triangles)} triangles, over the limit of {max_faces}; "
                         f"decimate it first")
@@ -98,7 +102,7 @@ def load_mesh(path: str | Path, units: str | None, max_bytes: int = MAX_MESH_BYT
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     return MeshPart(vertices=vertices, triangles=triangles, sha256=file_sha256(path), source=str(path),
                     units=units, center=(lo + hi) / 2.0, diameter=float(np.linalg.norm(hi - lo)),
-                    n_faces=len(triangles))
+                    n_faces=len(triangles), colour_histogram=colour)
 
 
 def _check_container(path: Path, kind: str, size: int) -> int | None:
@@ -134,8 +138,9 @@ def _check_container(path: Path, kind: str, size: int) -> int | None:
     return None
 
 
-def _parse(path: Path, kind: str) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and triangles as the file holds them, unprocessed (so NaN stays visible)."""
+def _parse(path: Path, kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Vertices and triangles as the file holds them, unprocessed (so NaN stays visible), and
+    the surface's colour histogram if the file has vertex or face colours."""
     import trimesh
 
     try:
@@ -151,7 +156,23 @@ def _parse(path: Path, kind: str) -> tuple[np.ndarray, np.ndarray]:
         raise MeshError(f"mesh {path} has {int(bad.sum())} vertices with NaN or infinite coordinates")
     if triangles.min() < 0 or triangles.max() >= len(vertices):
         raise MeshError(f"mesh {path} has triangles referring to vertices it does not have (truncated?)")
-    return vertices, triangles
+    return vertices, triangles, _colour_histogram(mesh, vertices, triangles)
+
+
+def _colour_histogram(mesh, vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray | None:
+    """The chromaticity histogram of a trimesh's vertex or face colours, each weighted by the
+    area it colours (a vertex a third of each triangle about it); None without colours."""
+    kind = getattr(getattr(mesh, "visual", None), "kind", None)
+    corners = vertices[triangles]
+    area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1) / 2
+    if kind == "vertex":
+        colours, weights = mesh.visual.vertex_colors, np.zeros(len(vertices))
+        np.add.at(weights, triangles.ravel(), np.repeat(area / 3, 3))
+    elif kind == "face":
+        colours, weights = mesh.visual.face_colors, area
+    else:
+        return None
+    return surface_histogram(np.asarray(colours)[:, 2::-1].astype(np.uint8), weights)  # RGBA -> BGR
 
 
 def _cleaned(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -2,7 +2,8 @@
 
 Each stage lives in its own module; this one only wires them:
 
-1. ``image_edges``: line segments (pixels) and Canny edge pixels; ``frame``: both
+1. ``image_edges``: line segments (pixels) and Canny edge pixels, only those within the
+   part's colour regions when its model has colour (``colour_regions``); ``frame``: both
    undistorted into normalised camera coordinates, the edge pixels prepared for scoring
    (beside the segments, on the worker threads); once per image for several parts
    (``detect``)
@@ -60,6 +61,7 @@ from .larger import centre_distance, larger_pose
 from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
+from .colour_regions import colour_regions
 from .confidence import load_calibration
 from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_shares, scored_tolerances
 from .search import TemplateSearch
@@ -177,7 +179,8 @@ class Estimator:
         """Find the part in ``image`` (grey or BGR ndarray) seen by ``camera``; with
         ``paper_only`` by the seed paper's method alone (module doc). ``frame``: the image's
         edges from ``detect`` (of this estimator or another with the same edge parameters),
-        else they are detected here (timed as the stage ``edges``).
+        else they are detected here (timed as the stage ``edges``); also when the part's colour
+        regions apply (``part_frame``), whose edges are this part's alone.
 
         Raises ValueError for an unusable image (empty, wrong shape or dtype) or an image
         whose size disagrees with the camera's.
@@ -193,8 +196,9 @@ class Estimator:
         if image.ndim < 2 or image.shape[0] != camera.height or image.shape[1] != camera.width:
             raise ValueError(f"image of shape {image.shape} does not fit the camera's "
                              f"{camera.width}x{camera.height}")
-        if frame is None:
-            frame = Frame.detect(image, camera, p.edges, pool, scored_tolerances(self.graph, p.pose))[1]
+        regions = self._colour_regions(image, p)
+        if frame is None or regions is not None:
+            frame = Frame.detect(image, camera, p.edges, pool, scored_tolerances(self.graph, p.pose), regions)[1]
             clock = _lap(timings, "edges", clock)
         not_found = Estimate(found=False, R=None, t=None, score=0.0, error_ratio=1.0, view_index=-1,
                              n_image_segments=len(frame.segments_px), n_matched=0, n_nearest=0, timings=timings)
@@ -235,6 +239,23 @@ class Estimator:
         if is_found(estimate, p.pose):
             estimate.found, estimate.R, estimate.t, estimate.covariance = True, best.R, best.t, best.covariance
         return estimate
+
+    def part_frame(self, image: np.ndarray, camera: Camera) -> Frame:
+        """The image's edges as ``estimate`` sees them for this part: within the part's colour
+        regions (``edges.colour_regions``) where they apply, else the whole image's (for benches
+        that score other poses on what the estimator saw)."""
+        with self._lock:
+            p, pool = self._params, self._pool
+        return Frame.detect(image, camera, p.edges, pool, scored_tolerances(self.graph, p.pose),
+                            self._colour_regions(image, p))[1]
+
+    def _colour_regions(self, image: np.ndarray, p: EstimatorParams) -> np.ndarray | None:
+        """The mask of the part's colour regions (``colour_regions``), or None: the whole image."""
+        if not p.edges.colour_regions:
+            return None
+        # a region smaller than a square half the smallest pose's diagonal wide holds no part
+        return colour_regions(image, self.graph.colour_histogram, p.edges.colour_region_threshold,
+                              (p.pose.min_size_pixels / 2) ** 2)
 
     def candidates(self, frame: Frame, timings: dict | None = None) -> list[Candidate]:
         """The hypotheses of ``search.generators`` on one image's edges, each refined and

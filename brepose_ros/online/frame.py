@@ -31,15 +31,19 @@ class Frame:
 
     @classmethod
     def detect(cls, image: np.ndarray, camera: Camera, params: EdgeParams, pool: WorkerPool = SERIAL,
-               tolerances: tuple[float, ...] = ()) -> tuple[ImageEdges, "Frame"]:
+               tolerances: tuple[float, ...] = (), mask: np.ndarray | None = None) -> tuple[ImageEdges, "Frame"]:
         """``detect_edges`` and ``of`` at once: after Canny, the line segments (Hough, merge,
         refit) and the evidence for scoring, which both start from the edge pixels alone,
         run on the ``pool``'s threads, the evidence's maps one job per direction bin
         (``EdgeEvidence.bin_jobs``): its nearest-edge table (``EdgeEvidence.nearest_like``,
         which every image with a pose aligns on, its polish at least) and its maps at the
         score's ``tolerances``, pixels (``scoring.scored_tolerances``), all built once per
-        image before the refinement's threads would each wait for them."""
+        image before the refinement's threads would each wait for them. ``mask`` (H, W) bool
+        keeps only its edge pixels (one part's ``colour_regions``); Canny's thresholds are the
+        whole image's either way."""
         pixels = edge_pixels(image, params)
+        if mask is not None:
+            pixels = dataclasses.replace(pixels, edge_map=np.where(mask, pixels.edge_map, 0).astype(np.uint8))
         evidence = _evidence(pixels)
         segments, refine_segments, *nearest = pool.map(lambda job: job(), [
             lambda: line_segments(pixels, params), lambda: line_segments(pixels, refinement_params(params)),

@@ -80,7 +80,7 @@ def edge_pixels(image: np.ndarray, params: EdgeParams) -> ImageEdges:
         flat = np.zeros(gray.shape, np.float32)
         return ImageEdges(gray, flat, flat, np.zeros(gray.shape, np.uint8), np.zeros((0, 2, 2)),
                           np.zeros((0, 2, 2)))
-    if params.colour and _is_colour(image):
+    if params.colour and is_colour_image(image):
         dx, dy, thresholds = colour_gradients(image, gray, params)
     else:
         (dx, dy), thresholds = gradients(gray, params), None  # canny_from_gradients' adaptive ones
@@ -190,7 +190,7 @@ def colour_gradients(image: np.ndarray, gray: np.ndarray, params: EdgeParams
     return dx, dy, thresholds[0]
 
 
-def _is_colour(image: np.ndarray) -> bool:
+def is_colour_image(image: np.ndarray) -> bool:
     """Three or four channels that are not all equal (a grey picture stored as BGR is grey)."""
     if image.ndim != 3 or image.shape[2] < 3:
         return False

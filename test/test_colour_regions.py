@@ -1,0 +1,128 @@
+"""Colour regions: the places of a colour image with the part's own surface colour, and the
+model colour that a coloured mesh carries into its aspect graph."""
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from brepose_ros.aspect_graph import AspectGraph, AspectGraphError
+from brepose_ros.online.colour_regions import (BINS, MARGIN_PIXELS, colour_regions, surface_histogram)
+from test_aspect_graph import rewritten
+from graph_helpers import one_view_graph
+
+#: BGR colours of the synthetic scene: the part's brown, two other objects, a beige desk
+BROWN, BLUE, GREEN, DESK = (50, 60, 150), (160, 90, 40), (60, 150, 60), (150, 170, 185)
+
+
+def model_histogram(colour=BROWN, seed=0) -> np.ndarray:
+    """A scanned surface of one colour: 500 vertices of it, lit brighter and dimmer, with noise."""
+    rng = np.random.default_rng(seed)
+    light = rng.uniform(0.6, 1.3, (500, 1))
+    colours = np.clip(np.array(colour) * light + rng.normal(0, 4, (500, 3)), 0, 255).astype(np.uint8)
+    return surface_histogram(colours, rng.uniform(0.5, 1.5, 500))
+
+
+def scene(seed=1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 480 x 640 photo-like image: a desk of noisy grain, a brown disc (the part, in shadow
+    on its left), a blue and a green box; the disc's mask and the boxes' mask."""
+    rng = np.random.default_rng(seed)
+    image = np.array(DESK, np.float32) * rng.uniform(0.7, 1.1, (480, 640, 1))
+    part, blue, green = (np.zeros((480, 640), np.uint8) for _ in range(3))
+    cv2.circle(part, (200, 240), 45, 1, -1)
+    cv2.rectangle(blue, (300, 200), (380, 300), 1, -1)
+    cv2.rectangle(green, (420, 100), (520, 180), 1, -1)
+    shade = 0.6 + 0.6 * np.nonzero(part)[1] / 640.0
+    image[part > 0] = np.array(BROWN, np.float32) * shade[:, None]
+    image[blue > 0], image[green > 0] = BLUE, GREEN
+    image += rng.normal(0, 3, image.shape)
+    return np.clip(image, 0, 255).astype(np.uint8), part > 0, (blue > 0) | (green > 0)
+
+
+def test_the_regions_hold_the_part_and_its_outline_and_drop_the_other_objects():
+    image, part, others = scene()
+    regions = colour_regions(image, model_histogram(), 0.5, 400)
+    assert regions is not None and regions.dtype == bool
+    outline = cv2.dilate(part.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # its edges, 2 px either side
+    assert regions[outline].mean() == 1.0
+    assert regions[others].mean() < 0.01
+    assert regions.mean() < 2 * outline.mean()  # the desk is not the part's colour
+    # grown by MARGIN_PIXELS, not more: nothing farther from the disc than that
+    far = cv2.dilate(part.astype(np.uint8), np.ones((2 * MARGIN_PIXELS + 5,) * 2, np.uint8)) == 0
+    assert not regions[far].any()
+
+
+def test_no_regions_without_a_colour_to_look_for():
+    image, _, _ = scene()
+    assert colour_regions(image, None, 0.5, 400) is None  # a STEP part: no colour
+    grey = cv2.cvtColor(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+    assert colour_regions(grey, model_histogram(), 0.5, 400) is None  # a grey image in BGR
+    assert colour_regions(image[:, :, 0], model_histogram(), 0.5, 400) is None
+    # a part coloured as nothing in the image: rather the whole image than none of it
+    assert colour_regions(image, model_histogram((200, 40, 200)), 0.5, 400) is None
+
+
+def test_the_surface_histogram_weighs_colours_by_area():
+    colours = np.array([BROWN, BLUE], np.uint8)
+    histogram = surface_histogram(colours, np.array([3.0, 1.0]))
+    assert histogram.shape == (BINS, BINS) and histogram.dtype == np.float32
+    assert histogram.sum() == pytest.approx(1.0)
+    brown = histogram[int((BROWN[2] + 1) / (sum(BROWN) + 3) * BINS), int((BROWN[1] + 1) / (sum(BROWN) + 3) * BINS)]
+    blue = histogram[int((BLUE[2] + 1) / (sum(BLUE) + 3) * BINS), int((BLUE[1] + 1) / (sum(BLUE) + 3) * BINS)]
+    assert brown == pytest.approx(3 * blue)
+
+
+def test_a_graphs_colour_is_kept_by_the_file_and_checked_and_may_be_absent(tmp_path):
+    plain = one_view_graph(np.array([[[0.0, 0.0], [0.1, 0.0]], [[0.1, 0.0], [0.1, 0.1]]]))
+    loaded = AspectGraph.load(plain.save(tmp_path / "plain.brepose.npz"))
+    assert loaded.colour_histogram is None and "colour_histogram" not in loaded.arrays()
+    coloured = dataclasses.replace(plain, colour_histogram=model_histogram())
+    path = coloured.save(tmp_path / "coloured.brepose.npz")
+    assert np.array_equal(AspectGraph.load(path).colour_histogram, coloured.colour_histogram)
+    with pytest.raises(AspectGraphError, match="colour_histogram is not a histogram"):
+        AspectGraph.load(rewritten(colour_histogram=lambda a: -a)(path, tmp_path))
+    with pytest.raises(AspectGraphError, match="array colour_histogram has dtype"):
+        AspectGraph.load(rewritten(colour_histogram=lambda a: a[:-1])(coloured.save(path), tmp_path))
+
+
+@pytest.fixture(scope="module")
+def coloured_bracket(builtin_step):
+    """The sharp bracket's graph at 12 degrees with a brown surface colour, and its mesh."""
+    from brepose_ros.offline.cad import load_step, tessellate
+    from brepose_ros.offline.compiler import compile_aspect_graph
+
+    step = builtin_step("sharp_bracket")
+    graph = compile_aspect_graph(step, step_deg=12.0, workers=2, progress=False)
+    return dataclasses.replace(graph, colour_histogram=model_histogram()), tessellate(load_step(step))
+
+
+def test_the_estimator_finds_the_part_of_its_colour_beside_a_twin_of_another(coloured_bracket):
+    """Two brackets of the same shape on a desk, the part brown on the left, a blue twin
+    larger and nearer on the right: within its colour regions the estimator sees the brown
+    one's edges alone and finds it."""
+    from brepose_ros.camera import Camera
+    from brepose_ros.geometry import look_at_rotation, normalize
+    from brepose_ros.online.estimator import Estimator
+    from brepose_ros.synthetic.render import Material, Placed, render
+
+    graph, mesh = coloured_bracket
+    camera = Camera(600.0, 600.0, 320.0, 240.0, 640, 480)
+    R = look_at_rotation(normalize(np.array([0.4, -0.6, -1.0])))
+    part_t, twin_t = np.array([-0.09, 0.0, 0.55]), np.array([0.08, 0.01, 0.45])
+    desk = np.array(DESK, np.float32) * np.random.default_rng(2).uniform(0.7, 1.1, (480, 640, 1))
+    image = render(camera, [Placed(mesh, R, centre - R @ graph.model_center, Material(color=tuple(np.array(bgr) / 255)))
+                            for centre, bgr in ((part_t, BROWN), (twin_t, BLUE))],
+                   background=desk.astype(np.uint8), color=True).image
+    estimator = Estimator(graph)
+    try:
+        frame = estimator.part_frame(image, camera)
+        ys, xs = np.nonzero(frame.evidence.edges)
+        part_x = camera.project(part_t[None])[0, 0]
+        assert len(xs) > 100 and np.abs(xs - part_x).max() < 0.6 * camera.focal * graph.model_diameter / part_t[2]
+        estimate = estimator.estimate(image, camera)
+        centre = estimate.R @ graph.model_center + estimate.t
+        assert np.linalg.norm(centre - part_t) < 0.1 * graph.model_diameter, (centre, part_t)
+    finally:
+        estimator.close()
