@@ -232,7 +232,7 @@ def test_starts_climbed_and_polished_together_end_as_each_alone(bracket, estimat
     """``climb_together`` and ``polished`` send the poses of all starts to the threads as one
     batch: each start of an occluded image among clutter climbs and polishes to the same
     bits as alone, with two threads as with none; with a start of ``CLEAR_SCORE`` before
-    them, the later starts are not climbed (``_climbed`` stops there)."""
+    them, the later starts are not climbed (``_climbed`` stops there), unless ``each_alone``."""
     import dataclasses
     from brepose_ros.online.frame import Frame
     from brepose_ros.online.refinement import distinct_poses
@@ -259,6 +259,11 @@ def test_starts_climbed_and_polished_together_end_as_each_alone(bracket, estimat
             clear = dataclasses.replace(starts[0], score=CLEAR_SCORE)
             ends = refiner.climb_together([clear] + starts[1:], frame, p.pose, pool)
             assert ends[0] is clear and ends[1:] == [None] * (len(starts) - 1)
+            # each alone (the twin check's twins): the starts after the clear one climb as alone
+            ends = refiner.climb_together([clear] + starts[1:], frame, p.pose, pool, each_alone=True)
+            assert ends[0] is clear
+            for a, b in zip(ends[1:], alone[1:]):
+                assert a.score == b.score and np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
     finally:
         pool.close()
 

@@ -222,7 +222,7 @@ class Estimator:
             clock = _lap(timings, "larger", clock)
         margin = None
         if p.pose.twin_check:
-            best, margin = check_twins(best, self.graph, self._refiner, frame, p.pose)
+            best, margin = check_twins(best, self.graph, self._refiner, frame, p.pose, pool)
             clock = _lap(timings, "symmetry", clock)
         timings["total"] = sum(timings.values())
         pairs = edge_pairs(self.graph, best.R, best.t, frame, p)

@@ -406,10 +406,11 @@ class PoseRefiner:
         return self.climb_together([start], frame, p, pool)[0]
 
     def climb_together(self, starts: list[Candidate], frame: Frame, p: PoseParams,
-                       pool: WorkerPool = SERIAL) -> list[Candidate | None]:
+                       pool: WorkerPool = SERIAL, each_alone: bool = False) -> list[Candidate | None]:
         """Each start hill-climbed over neighbouring views of the aspect graph, in step with
         the others; None for a start not climbed to the end because a start before it climbed
-        to ``CLEAR_SCORE`` (``_climbed`` stops at that one).
+        to ``CLEAR_SCORE`` (``_climbed`` stops at that one), unless ``each_alone``: then every
+        start ends as ``climb`` would end it alone (the twin check's twins, each compared).
 
         A hypothesis from a view 10-30 degrees off refines into a nearby local optimum.
         Each step turns the pose so that the camera sees the part along each of the
@@ -427,10 +428,11 @@ class PoseRefiner:
         # noise to chase), and no start after it is needed
         climbing = []
         for k, start in enumerate(starts):
-            if start.score >= CLEAR_SCORE:
+            if start.score < CLEAR_SCORE:
+                climbing.append(k)
+            elif not each_alone:
                 ends[k + 1:] = [None] * (len(starts) - k - 1)
                 break
-            climbing.append(k)
         settling = list(climbing)
         for _ in range(p.view_search_steps):
             if not climbing:
@@ -448,7 +450,7 @@ class PoseRefiner:
             for k in climbing:
                 ends[k] = improved[k]
             cleared = [k for k in settling if ends[k].score >= CLEAR_SCORE]
-            if cleared:  # the climbs after it are not needed
+            if cleared and not each_alone:  # the climbs after it are not needed
                 climbing = [k for k in climbing if k <= cleared[0]]
                 settling = [k for k in settling if k <= cleared[0]]
                 ends[cleared[0] + 1:] = [None] * (len(starts) - cleared[0] - 1)

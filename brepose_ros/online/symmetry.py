@@ -38,6 +38,7 @@ from .larger import projected_place
 from .lines2d import point_segment_distance, samples_along
 from .refinement import CLIMB_ROUNDS, SAME_POSE_DEG, SAME_POSE_DIAMETERS, Candidate, PoseRefiner
 from .scoring import pose_scores
+from .workers import SERIAL, WorkerPool
 
 #: an edge of one pose distinguishes it from its twin when farther than this many inlier
 #: distances from every edge of the twin: the polished twin sits on the common edges within
@@ -68,11 +69,12 @@ RIVAL_PLACE = 0.5
 
 
 def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame: Frame,
-                p: PoseParams) -> tuple[Candidate, float | None]:
+                p: PoseParams, pool: WorkerPool = SERIAL) -> tuple[Candidate, float | None]:
     """The pose (``best`` or one of its twins) with the most evidence on the edges that tell
     them apart, and its margin over its strongest rival (module doc); margin None when the
     part has no near symmetry, 1 when no twin holds on the image (each refines back onto
-    the pose or scores below ``pose.min_score``)."""
+    the pose or scores below ``pose.min_score``). The twins climb and polish on the
+    ``pool``'s threads, in step, each as it would alone."""
     near = np.nonzero(~graph.exact_symmetries)[0]
     if len(near) == 0:
         return best, None
@@ -80,8 +82,9 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     R, t = refiner.refine(R, t, frame, p, CLIMB_ROUNDS)
     # climbed over neighbouring views like the pose was: a near symmetry's twin starts a
     # few degrees off, and a twin left in a worse optimum would lose for that alone
-    twins = [refiner.polish(refiner.climb(Candidate(float(score), R_k, t_k, best.hypothesis), frame, p), frame, p)
-             for R_k, t_k, score in zip(R, t, pose_scores(graph, R, t, frame, p))]
+    starts = [Candidate(float(score), R_k, t_k, best.hypothesis)
+              for R_k, t_k, score in zip(R, t, pose_scores(graph, R, t, frame, p))]
+    twins = refiner.polished(refiner.climb_together(starts, frame, p, pool, each_alone=True), frame, p, pool)
     return pick_by_evidence(best, twins, graph, frame, p)
 
 
