@@ -209,14 +209,28 @@ def test_chance_is_the_share_of_near_pixels_in_the_window_to_the_bit():
     assert not chance[:, 0].any() and not chance[:, :, -1].any()
 
 
-def test_maps_built_per_bin_on_threads_equal_those_built_on_first_use():
+def horizontal_band(shape):
+    """A float32 gray image of a bright band across its whole width: horizontal edges only."""
+    gray = np.full(shape, 80, np.float32)
+    gray[shape[0] // 3: shape[0] // 2] = 200
+    return gray
+
+
+@pytest.mark.parametrize("picture", ["lines", "band"])
+def test_maps_built_per_bin_on_threads_equal_those_built_on_first_use(monkeypatch, picture):
     """EdgeEvidence.bin_jobs / adopt (Frame.detect's split of the maps over the worker
-    threads) give the nearest-edge table and the maps at each tolerance to the bit."""
-    stage = edge_stage(random_lines(4, (240, 320), 60))
+    threads) give the nearest-edge table and the maps at each tolerance to the bit, with
+    the maps' memory holding garbage before the jobs (``bin_jobs`` leaves it unset); the
+    band's edges leave bins without pixels."""
+    stage = edge_stage(random_lines(4, (240, 320), 60) if picture == "lines" else horizontal_band((240, 320)))
     prepared, lazy = scoring.EdgeEvidence(*stage), scoring.EdgeEvidence(*stage)
+    assert prepared.like_edges.any(axis=(1, 2)).all() == (picture == "lines")
     pool = WorkerPool(2)
     try:
-        prepared.adopt(pool.map(lambda job: job(), prepared.bin_jobs((2.0, 3.0))))
+        with monkeypatch.context() as patch:
+            patch.setattr(scoring.np, "empty", lambda shape, dtype: np.full(shape, 77, dtype))
+            jobs = prepared.bin_jobs((2.0, 3.0))
+        prepared.adopt(pool.map(lambda job: job(), jobs))
     finally:
         pool.close()
     for ours, theirs in zip(prepared.nearest_like(), lazy.nearest_like()):
