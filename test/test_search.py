@@ -210,6 +210,33 @@ def test_the_search_hypothesis_names_the_drawn_view_angle_size_and_position():
     assert all(np.hypot(*(place - first)) >= 0.5 * min(size, other) for place, other in others)
 
 
+def test_the_places_are_the_best_templates_each_clear_of_those_kept_before():
+    """``places``, by its definition: the templates best first (a score of 0 never), each
+    kept when every place kept before lies at least half the smaller of their sizes away,
+    until ``count``; templates crowd a few places, as a part's many views and angles do."""
+    rng = np.random.default_rng(5)
+    for trial in range(20):
+        n = 3000
+        crowd = rng.integers(0, 12, n)
+        spots = rng.uniform(0, 100, (12, 2))
+        x, y = (spots[crowd] + rng.normal(0, 6, (n, 2))).round().astype(int).T
+        score = np.where(rng.random(n) < 0.2, 0.0, rng.random(n))
+        size = rng.choice([20.0, 30.0, 45.0], n)
+        c = search.CoarseResult(score=score, y=y, x=x, view=np.zeros(n, int), angle=np.zeros(n), size=size,
+                                size_index=np.zeros(n, int), factor=2)
+        cx, cy = c.center_px()
+        for count in (1, 4, 1000):
+            kept = []
+            for t in sorted(range(n), key=lambda t: -score[t]):
+                if len(kept) < count and score[t] > 0 and all(
+                        np.hypot(cx[u] - cx[t], cy[u] - cy[t]) >= 0.5 * min(size[u], size[t]) for u in kept):
+                    kept.append(t)
+            places = search.TemplateSearch.places(c, count)
+            assert len(places) == len(kept) and (count < 1000 or len(kept) < 1000)  # run out too
+            for (place, place_size), t in zip(places, kept):
+                assert np.array_equal(place, [cx[t], cy[t]]) and place_size == size[t]
+
+
 def test_on_texture_the_probes_ask_more_than_chance_and_the_part_is_still_found():
     """Short edges of every direction strewn over the image (a photograph's texture) set about
     half of the response maps: a position then passes the probes only if they beat that

@@ -476,14 +476,17 @@ class TemplateSearch:
         pixels), whatever the view: a template's place counts once another's lies within half
         the smaller of their sizes."""
         order = np.argsort(-c.score)
+        order = order[c.score[order] > 0]
         x, y = c.center_px()
+        x, y, size = x[order], y[order], c.size[order]
+        # each place kept rules out every template near it at once: template by template
+        # against the kept places, in Python, took 5-8 ms of a clean image reaching the windows
+        free = np.arange(len(order))  # the templates no kept place rules out, best first
         kept: list[int] = []
-        for t in order[c.score[order] > 0]:
-            if len(kept) == count:
-                break
-            if all(np.hypot(x[u] - x[t], y[u] - y[t]) >= 0.5 * min(c.size[u], c.size[t]) for u in kept):
-                kept.append(t)
-        return [(np.array([x[t], y[t]]), float(c.size[t])) for t in kept]
+        while len(kept) < count and len(free):
+            kept.append(k := int(free[0]))
+            free = free[np.hypot(x[k] - x[free], y[k] - y[free]) >= 0.5 * np.minimum(size[k], size[free])]
+        return [(np.array([x[k], y[k]]), float(size[k])) for k in kept]
 
 
 @dataclass
