@@ -61,6 +61,20 @@ def test_clusters_are_chains_of_close_end_points_largest_first():
     assert len(cluster_segments(apart, gap=5.0)) == 2
 
 
+def test_two_segments_chain_through_whichever_of_their_ends_are_close():
+    """Segment 1 has only its end ``b`` within the gap of segment 0's end ``a``, for each of
+    the four pairings: the two are one cluster, a far segment another."""
+    far = np.array([[500.0, 500.0], [512.0, 500.0]])
+    for a in (0, 1):
+        for b in (0, 1):
+            first = np.array([[0.0, 0.0], [12.0, 0.0]])
+            second = np.array([[0.0, 30.0], [0.0, 30.0]])  # pointing away from the first, from its end b
+            second[b] = first[a] + [0.0, 2.0]
+            second[1 - b] = first[a] + [0.0, 14.0]
+            clusters = cluster_segments(np.stack([first, second, far]), gap=5.0)
+            assert [c.tolist() for c in clusters] == [[0, 1], [2]], (a, b)
+
+
 def test_a_seed_is_matched_in_its_own_frame_and_corrected_whatever_lies_outside_its_window():
     """An L-shaped part drawn at a known similarity, clutter far off to one side (it would
     move a hull normalisation of the whole image): a seed 9 degrees, 12 % in size and 15 px

@@ -110,9 +110,13 @@ def cluster_segments(segments_px: np.ndarray, gap: float) -> list[np.ndarray]:
     """
     n = len(segments_px)
     ends = segments_px.reshape(-1, 2)
-    close = np.linalg.norm(ends[:, None] - ends[None, :], axis=2) < gap
-    linked = close.reshape(n, 2, n, 2).any(axis=(1, 3))
-    parent = np.arange(n)
+    # the end points' distances as np.linalg.norm forms them (the root of dx^2 + dy^2), without
+    # its (2N, 2N, 2) differences: 200 segments took 10 ms that way
+    dx, dy = ends[:, None, 0] - ends[None, :, 0], ends[:, None, 1] - ends[None, :, 1]
+    close = np.sqrt(dx * dx + dy * dy) < gap
+    # two segments link when any end of one is close to any end of the other (ends 2k, 2k + 1)
+    linked = close[0::2, 0::2] | close[0::2, 1::2] | close[1::2, 0::2] | close[1::2, 1::2]
+    parent = list(range(n))  # Python ints: the union-find on numpy scalars took 4 ms at 200 pairs
 
     def root(i):
         while parent[i] != i:
@@ -120,7 +124,7 @@ def cluster_segments(segments_px: np.ndarray, gap: float) -> list[np.ndarray]:
             i = parent[i]
         return i
 
-    for i, j in zip(*np.nonzero(np.triu(linked, 1))):
+    for i, j in zip(*(k.tolist() for k in np.nonzero(np.triu(linked, 1)))):
         ri, rj = root(i), root(j)
         if ri != rj:
             parent[ri] = rj
