@@ -126,3 +126,39 @@ def test_the_estimator_finds_the_part_of_its_colour_beside_a_twin_of_another(col
         assert np.linalg.norm(centre - part_t) < 0.1 * graph.model_diameter, (centre, part_t)
     finally:
         estimator.close()
+
+
+
+def test_within_its_colour_regions_the_search_finds_a_part_smaller_than_the_default_sizes(coloured_bracket):
+    """The brown bracket alone, about 100 px across where the search's default smallest size
+    is 0.2 of the 800 px diagonal: its colour region sets the sizes searched, which then hold
+    it, and the search's best place is the part's, at its size."""
+    from brepose_ros.camera import Camera
+    from brepose_ros.geometry import look_at_rotation, normalize
+    from brepose_ros.online.estimator import Estimator
+    from brepose_ros.online.search import TemplateSearch
+    from brepose_ros.params import SearchParams
+    from brepose_ros.synthetic.render import Material, Placed, render
+
+    graph, mesh = coloured_bracket
+    camera = Camera(600.0, 600.0, 320.0, 240.0, 640, 480)
+    R = look_at_rotation(normalize(np.array([0.4, -0.6, -1.0])))
+    size = 100.0  # the part's diameter, pixels
+    part_t = np.array([0.03, -0.02, camera.focal * graph.model_diameter / size])
+    desk = np.array(DESK, np.float32) * np.random.default_rng(3).uniform(0.7, 1.1, (480, 640, 1))
+    image = render(camera, [Placed(mesh, R, part_t - R @ graph.model_center, Material(color=tuple(np.array(BROWN) / 255)))],
+                   background=desk.astype(np.uint8), color=True).image
+    estimator = Estimator(graph)
+    try:
+        frame = estimator.part_frame(image, camera)
+    finally:
+        estimator.close()
+    p = SearchParams()
+    search = TemplateSearch(graph, p)
+    assert frame.region_extents is not None
+    assert search.sizes(dataclasses.replace(frame, region_extents=None), p)[0] > 1.5 * size  # the whole image's
+    sizes = search.sizes(frame, p)
+    assert sizes[0] <= size <= sizes[-1] and sizes[-1] < p.max_size_fraction * np.hypot(640, 480)
+    (centre, found), = search.places(search.coarse(frame, p), 1)
+    assert np.hypot(*(centre - camera.project(part_t[None])[0])) < 0.25 * size, centre  # within the part
+    assert size / 1.3 < found < 1.3 * size, found

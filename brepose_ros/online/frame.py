@@ -4,6 +4,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from ..camera import Camera
@@ -24,6 +25,9 @@ class Frame:
     camera: Camera
     evidence: EdgeEvidence
     edge_points_n: np.ndarray  # evidence.pixels in normalised camera coordinates
+    #: the bounding-box diagonals (pixels) of the connected regions of ``detect``'s ``mask``,
+    #: the only places the part can lie (its colour regions); None: the whole image
+    region_extents: np.ndarray | None = None
 
     @classmethod
     def of(cls, edges: ImageEdges, camera: Camera) -> "Frame":
@@ -39,8 +43,9 @@ class Frame:
         which every image with a pose aligns on, its polish at least) and its maps at the
         score's ``tolerances``, pixels (``scoring.scored_tolerances``), all built once per
         image before the refinement's threads would each wait for them. ``mask`` (H, W) bool
-        keeps only its edge pixels (one part's ``colour_regions``); Canny's thresholds are the
-        whole image's either way."""
+        keeps only its edge pixels (one part's ``colour_regions``), and its regions' sizes
+        (``region_extents``) bound the template search's; Canny's thresholds are the whole
+        image's either way."""
         pixels = edge_pixels(image, params)
         if mask is not None:
             pixels = dataclasses.replace(pixels, edge_map=np.where(mask, pixels.edge_map, 0).astype(np.uint8))
@@ -50,7 +55,7 @@ class Frame:
             *evidence.bin_jobs(tolerances)])
         evidence.adopt(nearest)
         edges = dataclasses.replace(pixels, segments=segments, refine_segments=refine_segments)
-        return edges, cls._with(edges, camera, evidence)
+        return edges, cls._with(edges, camera, evidence, None if mask is None else region_extents(mask))
 
     @classmethod
     def warm_up(cls, params: EdgeParams, pool: WorkerPool, tolerances: tuple[float, ...]) -> None:
@@ -63,10 +68,17 @@ class Frame:
         cls.detect(image, Camera(500.0, 500.0, 320.0, 240.0, 640, 480), params, pool, tolerances)
 
     @classmethod
-    def _with(cls, edges: ImageEdges, camera: Camera, evidence: EdgeEvidence) -> "Frame":
+    def _with(cls, edges: ImageEdges, camera: Camera, evidence: EdgeEvidence,
+              region_extents: np.ndarray | None = None) -> "Frame":
         return cls(segments_px=edges.segments, segments_n=camera.undistort(edges.segments),
                    refine_segments_n=camera.undistort(edges.refine_segments), camera=camera,
-                   evidence=evidence, edge_points_n=camera.undistort(evidence.pixels))
+                   evidence=evidence, edge_points_n=camera.undistort(evidence.pixels), region_extents=region_extents)
+
+
+def region_extents(mask: np.ndarray) -> np.ndarray:
+    """The bounding-box diagonals (pixels) of the 8-connected regions of a bool mask (H, W)."""
+    count, _, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    return np.hypot(stats[1:count, cv2.CC_STAT_WIDTH], stats[1:count, cv2.CC_STAT_HEIGHT]).astype(np.float64)
 
 
 def _evidence(edges: ImageEdges) -> EdgeEvidence:

@@ -99,6 +99,16 @@ class TemplateLibrary:
         #: the radius (metres) of each view's template about the model centre: sizes are
         #: the part's diameter in pixels, so a view seen edge-on is as far as the others
         self.diameter = graph.model_diameter
+        #: the narrowest coarse view's widest span (its points' farthest pair) as a share of
+        #: the diameter: a part whose outline fits in a region of that span is at most
+        #: span / share across (``TemplateSearch.sizes``)
+        self.narrowest_span_share = min((_widest_span(self.points[v]) for v in self.coarse_views),
+                                        default=self.diameter) / self.diameter
+
+
+def _widest_span(points: np.ndarray) -> float:
+    """The largest distance between two of the points (K, 2)."""
+    return float(np.sqrt(((points[:, None, :] - points[None, :, :]) ** 2).sum(axis=-1).max()))
 
 
 def template_points(segments: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -332,6 +342,11 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
         best_score[t], best_y[t], best_x[t] = best, by, bx
 
 
+#: the smallest part diameter searched within colour regions, share of the smallest region's
+#: bounding-box diagonal (``TemplateSearch.sizes``)
+SMALLEST_REGION_SHARE = 0.5
+
+
 class TemplateSearch:
     """The search of the module doc for one aspect graph."""
 
@@ -360,9 +375,10 @@ class TemplateSearch:
 
     def sizes(self, frame: Frame, p: SearchParams, distances: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
         """The part diameters in pixels the search tries (geometric steps): between the
-        parameters' shares of the image diagonal, or, for each end of ``distances`` (the part's
-        model centre nearest and farthest from the camera, metres; 0: unknown) that is known,
-        the part's diameter at that distance."""
+        parameters' shares of the image diagonal, or the sizes the frame's regions allow
+        (``Frame.region_extents``, the part's colour regions), or, for each end of ``distances``
+        (the part's model centre nearest and farthest from the camera, metres; 0: unknown)
+        that is known, the part's diameter at that distance."""
         diagonal = np.hypot(frame.camera.width, frame.camera.height)
         low, high = p.min_size_fraction * diagonal, p.max_size_fraction * diagonal
         nearest, farthest = distances
@@ -371,6 +387,15 @@ class TemplateSearch:
         # ask for templates, and maps padded for them, of many thousands of pixels
         smallest = field_ranges()["search.min_size_fraction"][0] * diagonal
         largest = field_ranges()["search.max_size_fraction"][1] * diagonal
+        regions = frame.region_extents
+        if regions is not None and len(regions):
+            # the part's outline lies within one region, so even its narrowest view spans no
+            # more than the largest region's diagonal; a region holding the part alone is at
+            # most about 1.4 times the part's span plus its margin across, so the part is at
+            # least half the smallest region's diagonal (LM-O's parts are 65-190 px where the
+            # fractions' smallest is 160 px: docs/results/real_lmo.md)
+            low = max(SMALLEST_REGION_SHARE * regions.min(), smallest)
+            high = min(high, regions.max() / self.library.narrowest_span_share)
         if farthest > 0:
             low = np.clip(at_one_metre / farthest, smallest, largest)
         if nearest > 0:
