@@ -156,7 +156,10 @@ def test_within_its_colour_regions_the_search_finds_a_part_smaller_than_the_defa
     p = SearchParams()
     search = TemplateSearch(graph, p)
     assert frame.region_extents is not None
-    assert search.sizes(dataclasses.replace(frame, region_extents=None), p)[0] > 1.5 * size  # the whole image's
+    whole = search.sizes(dataclasses.replace(frame, region_extents=None), p)
+    assert whole[0] > 1.5 * size
+    # a region as large as the image (a grey part on a grey desk) bounds nothing
+    assert np.array_equal(search.sizes(dataclasses.replace(frame, region_extents=np.array([800.0])), p), whole)
     sizes = search.sizes(frame, p)
     assert sizes[0] <= size <= sizes[-1] and sizes[-1] < p.max_size_fraction * np.hypot(640, 480)
     (centre, found), = search.places(search.coarse(frame, p), 1)

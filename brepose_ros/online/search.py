@@ -391,10 +391,11 @@ class TemplateSearch:
         if regions is not None and len(regions):
             # the part's outline lies within one region, so even its narrowest view spans no
             # more than the largest region's diagonal; a region holding the part alone is at
-            # most about 1.4 times the part's span plus its margin across, so the part is at
-            # least half the smallest region's diagonal (LM-O's parts are 65-190 px where the
-            # fractions' smallest is 160 px: docs/results/real_lmo.md)
-            low = max(SMALLEST_REGION_SHARE * regions.min(), smallest)
+            # most about 1.4 times the part's span plus its margin across, so a part alone in
+            # the smallest region is at least half its diagonal (LM-O's parts are 65-190 px
+            # where the fractions' smallest is 160 px: docs/results/real_lmo.md). Only ever
+            # lowered: a grey part shares one region, most of the image, with the desk
+            low = max(min(low, SMALLEST_REGION_SHARE * regions.min()), smallest)
             high = min(high, regions.max() / self.library.narrowest_span_share)
         if farthest > 0:
             low = np.clip(at_one_metre / farthest, smallest, largest)
