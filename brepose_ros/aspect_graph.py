@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .online.colour_regions import BINS as COLOUR_BINS
+from .chromaticity import BINS as COLOUR_BINS
 from .online.kernels import nearest_views_kernel
 
 FORMAT = "brepose-aspect-graph"

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from brepose_ros.aspect_graph import AspectGraph, AspectGraphError
-from brepose_ros.online.colour_regions import (BINS, MARGIN_PIXELS, colour_regions, surface_histogram)
+from brepose_ros.chromaticity import BINS, surface_histogram
+from brepose_ros.online.colour_regions import MARGIN_PIXELS, colour_regions
 from test_aspect_graph import rewritten
 from graph_helpers import one_view_graph
 

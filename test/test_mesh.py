@@ -157,7 +157,7 @@ def test_a_binary_stl_header_claiming_more_than_the_limit_is_refused(tmp_path):
 
 
 def test_a_meshs_vertex_colours_become_its_colour_histogram_and_none_without(tmp_path):
-    from brepose_ros.online.colour_regions import BINS
+    from brepose_ros.chromaticity import BINS
 
     coloured = cube(50.0)
     coloured.visual.vertex_colors = np.tile([150, 60, 50, 255], (len(coloured.vertices), 1))  # RGBA brown

@@ -29,7 +29,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from ..aspect_graph import file_sha256
-from ..online.colour_regions import surface_histogram
+from ..chromaticity import surface_histogram
 from .cad import CadError, checked_size
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
@@ -65,7 +65,7 @@ class MeshPart:
     center: np.ndarray  # bounding-box centre, metres, model frame
     diameter: float  # bounding-box diagonal, metres (an upper bound of the true diameter)
     n_faces: int  # triangles
-    #: the surface's chromaticity histogram (``online.colour_regions.surface_histogram``) of
+    #: the surface's chromaticity histogram (``chromaticity.surface_histogram``) of
     #: its vertex or face colours, None if the file has none
     colour_histogram: np.ndarray | None = None
 

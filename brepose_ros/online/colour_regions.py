@@ -7,23 +7,22 @@ the template search, the regions of the tetrads and the score look at the part's
 only: on the LM-O photographs the printed posters, the desk and the other objects gave any
 edge template 0.5-0.65 where the true place scored 0.21-0.35 (docs/results/real_lmo.md).
 
-The colour is compared as chromaticity (r, g) = (R, G) / (R + G + B), which a brighter or
-dimmer light leaves alone, in ``BINS`` x ``BINS`` bins. A pixel's likelihood is Swain and
-Ballard's histogram ratio (Color indexing, IJCV 1991): the model's share of its bin over
-the image's share, at most 1; a colour the part has and the rest of the image rarely has
-scores 1, a colour everywhere in the image scores its share of the model, so the regions
-stay small where the part's colour is rare and grow to most of the image where it is
-common (a grey part on a grey desk: nothing is lost, little is gained).
+The colour is compared as a chromaticity histogram (``chromaticity``), which a brighter or
+dimmer light leaves alone. A pixel's likelihood is Swain and Ballard's histogram ratio
+(Color indexing, IJCV 1991): the model's share of its bin over the image's share, at most
+1; a colour the part has and the rest of the image rarely has scores 1, a colour everywhere
+in the image scores its share of the model, so the regions stay small where the part's
+colour is rare and grow to most of the image where it is common (a grey part on a grey
+desk: nothing is lost, little is gained).
 """
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
+from ..chromaticity import chromaticity_bins, histogram, smoothed
 from .image_edges import is_colour_image
 
-#: chromaticity bins along r and along g
-BINS = 32
 #: the likelihood map is smoothed over this many pixels (odd): sensor noise moves single pixels' bins
 SMOOTHING_PIXELS = 5
 #: holes up to this many pixels (odd) in a region are closed: highlights and dark folds
@@ -34,28 +33,10 @@ CLOSING_PIXELS = 9
 MARGIN_PIXELS = 5
 
 
-def surface_histogram(colours_bgr: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """The model's colour: (BINS, BINS) float32 chromaticity histogram summing to 1 of
-    surface colours (N, 3) uint8 BGR weighted by the surface area each stands for (N,),
-    smoothed over a bin so that a slightly different light still finds it."""
-    r, g = chromaticity_bins(colours_bgr)
-    return _smoothed(_histogram(r, g, np.asarray(weights, np.float32)))
-
-
-def chromaticity_bins(bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The (r, g) bins of BGR uint8 colours (..., 3), each shaped as the colours' leading axes;
-    one is added to every channel so that black has a chromaticity (grey's)."""
-    values = bgr.astype(np.float32) + 1.0
-    total = values.sum(axis=-1)
-    r = np.minimum((values[..., 2] / total * BINS).astype(np.intp), BINS - 1)
-    g = np.minimum((values[..., 1] / total * BINS).astype(np.intp), BINS - 1)
-    return r, g
-
-
 def colour_likelihood(image: np.ndarray, model_histogram: np.ndarray) -> np.ndarray:
     """(H, W) float32 in [0, 1]: each pixel's histogram ratio (module doc), smoothed."""
     r, g = chromaticity_bins(image[:, :, :3])
-    ratio = np.minimum(model_histogram / np.maximum(_smoothed(_histogram(r, g)), 1e-12), 1.0)
+    ratio = np.minimum(model_histogram / np.maximum(smoothed(histogram(r, g)), 1e-12), 1.0)
     return cv2.GaussianBlur(ratio[r, g], (SMOOTHING_PIXELS, SMOOTHING_PIXELS), 0)
 
 
@@ -78,14 +59,3 @@ def colour_regions(image: np.ndarray, model_histogram: np.ndarray | None, thresh
     kept = np.isin(labels, large).astype(np.uint8)
     return cv2.dilate(kept, np.ones((2 * MARGIN_PIXELS + 1,) * 2, np.uint8)) > 0
 
-
-def _histogram(r: np.ndarray, g: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """(BINS, BINS) float32 counts (or summed weights) of the bins (r, g)."""
-    flat = np.bincount((r * BINS + g).ravel(), weights, minlength=BINS * BINS)
-    return flat.reshape(BINS, BINS).astype(np.float32)
-
-
-def _smoothed(histogram: np.ndarray) -> np.ndarray:
-    """A histogram blurred over one bin either way and scaled to sum 1."""
-    blurred = cv2.GaussianBlur(histogram, (3, 3), 0)
-    return blurred / max(float(blurred.sum()), 1e-12)
