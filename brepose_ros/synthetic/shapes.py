@@ -26,6 +26,18 @@ def cylinder(radius: float = 20.0, height: float = 50.0) -> cq.Workplane:
     return cq.Workplane("XY").cylinder(height, radius)
 
 
+def l_block() -> cq.Workplane:
+    """A 60 x 40 x 30 block with a 30 x 15 step cut along its length: a training shape with no
+    rotational symmetry, so that its wrong views are not forgiven as a cube's are."""
+    return cq.Workplane("XZ").polyline([(0, 0), (60, 0), (60, 15), (30, 15), (30, 30), (0, 30)]).close() \
+        .extrude(-40).translate((-30, -20, -15))
+
+
+def wedge() -> cq.Workplane:
+    """A right wedge, legs 60 and 30, 40 deep: the other training shape without rotational symmetry."""
+    return cq.Workplane("XZ").polyline([(0, 0), (60, 0), (0, 30)]).close().extrude(-40).translate((-20, -20, -10))
+
+
 def sharp_bracket() -> cq.Workplane:
     """An L bracket with a rectangular window and two square holes: only straight edges."""
     base = cq.Workplane("XY").box(80, 50, 8).translate((0, 0, 4))
@@ -86,6 +98,8 @@ BUILTIN = {
     "cube": cube,
     "box": box,
     "cylinder": cylinder,
+    "l_block": l_block,
+    "wedge": wedge,
     "sharp_bracket": sharp_bracket,
     "rounded_bracket": rounded_bracket,
     "sample_bracket": sample_bracket,
