@@ -79,7 +79,7 @@ def test_learning_keeps_the_defaults_when_no_trial_beats_them_on_the_held_out_im
             assert result.verdict.reason.startswith("defaults kept")
             kept += 1
     assert looked_better >= 15  # chosen on the training images alone, most runs would leave the defaults
-    assert kept >= 18  # 2 standard errors: about one run in 15 fooled (one of 20 here)
+    assert kept >= 18  # 2 standard errors: about one run in 11 fooled (one of these 20)
 
 
 def test_learning_chooses_a_clearly_better_set_and_logs_every_trial(tmp_path):
@@ -165,7 +165,8 @@ def test_the_shipped_learned_file_passes_the_estimator_files_checks():
 
     EstimatorParams.load(CONFIG / "learned.yaml")  # the checks of config/estimator.yaml
     groups = ros_section(yaml.safe_load((CONFIG / "learned.yaml").read_text()))
-    assert {f"{g}.{k}" for g, values in groups.items() for k in values} <= {k.name for k in SEARCH_SPACE}
+    names = {f"{g}.{k}" for g, values in groups.items() for k in values}
+    assert names and not any(n.startswith("pose.") for n in names)  # min_score's calibration holds
     assert "brepose-learn" in (CONFIG / "learned.yaml").read_text()
 
 

@@ -9,7 +9,8 @@ from brepose_ros.offline.cad import load_step
 pytestmark = pytest.mark.cad
 
 
-@pytest.mark.parametrize("name, faces", [("shaft", 8), ("flange", 12), ("notched_plate", 22)])
+@pytest.mark.parametrize("name, faces", [("shaft", 8), ("flange", 12), ("notched_plate", 22), ("l_block", 8),
+                                         ("wedge", 5)])
 def test_new_parts_are_valid_solids(builtin_step, name, faces):
     from brepose_ros.synthetic import shapes
 

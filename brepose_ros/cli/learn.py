@@ -79,7 +79,8 @@ def main(argv=None) -> int:
                     return
                 held = f", held-out {record['held_out_loss']:.4f}" if record["held_out_loss"] is not None else ""
                 bar.write(f"trial {record['trial']}: loss {record['loss']:.4f} (er {record['error_rate']:.4f} "
-                          f"+- {record['standard_error']:.4f}, {record['median_ms']:.0f} ms{held}) {record['seconds']:.0f} s")
+                          f"+- {record['standard_error']:.4f}, {record['median_ms']:.0f} ms{held}) "
+                          f"{record['seconds']:.0f} s")
                 bar.update(1)
                 bar.set_postfix(best=f"{min(r['loss'] for r in records):.4f}")
 

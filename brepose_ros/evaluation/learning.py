@@ -58,8 +58,8 @@ TRAINING_CONDITIONS = {
 HELD_OUT_SEED_OFFSET = 1000
 #: a learned set replaces the defaults only when its held-out loss is lower by more than this
 #: many standard errors of the per-image difference: where no set is truly better, the best
-#: of three finalists passes 1 standard error by chance about a third of the time, 2 about
-#: one time in 15 (docs/results/learning.md)
+#: of three finalists passes 1 standard error by chance in 39 of 100 runs of a synthetic
+#: objective, 2 in 9 (docs/results/learning.md)
 HELD_OUT_MARGIN = 2.0
 
 
@@ -135,7 +135,8 @@ class TrainingPart:
 
 
 def training_parts(cache: Path, shapes=TRAINING_SHAPES, n: int = 4, seed: int = 0, step_deg: float = 10.0,
-                   conditions: dict | None = None, held_out_n: int = 0) -> tuple[list[TrainingPart], list[TrainingPart]]:
+                   conditions: dict | None = None,
+                   held_out_n: int = 0) -> tuple[list[TrainingPart], list[TrainingPart]]:
     """Compile (once) the shapes' aspect graphs and render (once) ``n`` training images per
     shape and condition into ``cache``, and ``held_out_n`` held-out ones (seed ``seed +
     HELD_OUT_SEED_OFFSET``); the two lists share each shape's estimator. Needs the CAD stack."""
