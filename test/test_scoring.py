@@ -78,6 +78,29 @@ def test_the_truth_outranks_near_poses_with_30_percent_hidden_behind_a_textured_
         assert evidence.shares(wrong, 2.0, MARGIN).score < truth - 0.25
 
 
+def test_cells_where_the_pose_lies_beside_the_parts_edges_count_against_it_and_hidden_ones_do_not(monkeypatch):
+    """An L plate and its model shifted 4 px sideways: the vertical edges miss their image
+    edges at the look-up tolerance, and with the cells seen only there (SEEN_TOLERANCE at the
+    tolerance, as before) their unexplained image edges would not count. Beside them within
+    SEEN_TOLERANCE, they do: the explained share falls from 0.93 to about half. With the
+    plate's left 30 % under a plain occluder the hidden edges have no image edge beside them,
+    and the truth's score stays within 0.02."""
+    gray = np.full((300, 400), 90, np.uint8)
+    corners, model = l_plate((200, 150), 200)
+    cv2.fillPoly(gray, [np.round(corners[0]).astype(np.int32)], 200)
+    cv2.fillPoly(gray, [np.round(corners[1]).astype(np.int32)], 90)
+    hidden = gray.copy()
+    hidden[:, :160] = 30
+
+    def shares(image, pose):
+        return scoring.EdgeEvidence(*edge_stage(image.astype(np.float32))).shares(pose, 2.0, MARGIN)
+
+    beside, occluded = shares(gray, model + [4.0, 0.0]), shares(hidden, model)
+    monkeypatch.setattr(scoring.EdgeEvidence, "SEEN_TOLERANCE", 2.0)
+    assert beside.explained < shares(gray, model + [4.0, 0.0]).explained - 0.3
+    assert occluded.score == pytest.approx(shares(hidden, model).score, abs=0.02)
+
+
 def test_a_pose_too_far_on_pieces_of_the_parts_edges_is_told_by_the_edges_running_on():
     """An L plate, and the same model 1.5x as far (scaled by 1 / 1.5 about the plate's outer
     corner, so two of its edges lie on pieces of the plate's): beyond their ends the plate's
@@ -338,9 +361,10 @@ def reference_shares(evidence, model_px, tolerance):
     h, w = evidence.shape
     model_px = np.clip(model_px, -4.0 * max(h, w), 5.0 * max(h, w))
     near, chance = evidence.near_like(tolerance), evidence.chance(tolerance)
+    wide, wide_chance = evidence.near_like(evidence.SEEN_TOLERANCE), evidence.chance(evidence.SEEN_TOLERANCE)
     cell, reach = evidence.SEEN_CELL, evidence.SEEN_REACH
     rows, cols = -(-h // cell), -(-w // cell)
-    model_in, confirmed_in, chance_in = np.zeros((3, rows, cols))
+    model_in, confirmed_in, chance_in, wide_in, wide_chance_in = np.zeros((5, rows, cols))
     length = confirmed = by_chance = 0.0
     for seg, own in zip(model_px, evidence.orientation_bin(model_px)):
         count = int(np.clip(np.ceil(np.linalg.norm(seg[1] - seg[0]) / 2.0), 1, 2000))
@@ -355,13 +379,16 @@ def reference_shares(evidence, model_px, tolerance):
                 model_in[at] += weight
                 confirmed_in[at] += weight * near[own, y, x]
                 chance_in[at] += weight * chance[own, y, x]
+                wide_in[at] += weight * wide[own, y, x]
+                wide_chance_in[at] += weight * wide_chance[own, y, x]
     seen = np.zeros((rows, cols), bool)
     for r in range(rows):
         for c in range(cols):
             around = np.s_[max(r - reach, 0):r + reach + 1, max(c - reach, 0):c + reach + 1]
             at = (r, c) if model_in[r, c] > 0 else around
-            seen[r, c] = model_in[at].sum() > 0 and \
+            seen[r, c] = model_in[at].sum() > 0 and (
                 confirmed_in[at].sum() - chance_in[at].sum() >= 0.5 * model_in[at].sum()
+                or wide_in[at].sum() - wide_chance_in[at].sum() >= 0.5 * model_in[at].sum())
     outline = evidence.grown_outline(model_px.reshape(-1, 2), MARGIN)
     inside = np.zeros((h, w), bool)
     for y in range(h):

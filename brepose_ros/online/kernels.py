@@ -290,7 +290,7 @@ def warm_up() -> None:
     median_of_every_other(gradient)
     near, row_starts, columns = np.zeros((1, 8, 6, 6), np.uint8), np.zeros(5, np.int64), np.zeros(0, np.int64)
     pose_evidence_kernel(segments * 3.0, np.zeros(2, np.int64), np.array([0, 2]), 1.0, near,
-                         np.zeros((1, 8, 6, 6), np.float32), row_starts, columns, np.ones(1), 1.0, 0.2, 2, 1,
+                         np.zeros((1, 8, 6, 6), np.float32), row_starts, columns, np.ones(1), 1.0, 0.2, 2, 1, 0,
                          np.zeros((1, 5)), np.zeros((0, 0), np.uint8))
     run_on_kernel(segments * 3.0, np.array([0, 2]), near, np.zeros((1, 8, 6, 6), np.float32), 0.25, 6.0, 30.0, 10.0,
                   3.0, np.zeros((1, 3)))
@@ -350,10 +350,11 @@ def _nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, i_ux: np.ndarray,
 def pose_evidence_kernel(model_px: np.ndarray, reach_of: np.ndarray, spans: np.ndarray, min_size: float,
                          near: np.ndarray, chance: np.ndarray, row_starts: np.ndarray, columns: np.ndarray,
                          tolerances: np.ndarray, min_margin: float, margin_share: float, cell: int, reach: int,
-                         out: np.ndarray, labels: np.ndarray) -> None:
+                         seen_layer: int, out: np.ndarray, labels: np.ndarray) -> None:
     """What ``scoring.EdgeEvidence.shares`` counts for B poses, into ``out`` (B, 5): pose b's
     projected visible model segments are ``model_px[spans[b]:spans[b + 1]]`` (pixels),
-    segment s looked up within ``tolerances[reach_of[s]]`` (``_pose_evidence``).
+    segment s looked up within ``tolerances[reach_of[s]]``, cells seen also by layer
+    ``seen_layer`` of the maps (``_pose_evidence``).
 
     A pose without segments, or whose segments span less than ``min_size`` pixels
     (diagonal of their box), keeps zeros. The rest are clipped a few image sizes out (a pose
@@ -378,8 +379,8 @@ def pose_evidence_kernel(model_px: np.ndarray, reach_of: np.ndarray, spans: np.n
             continue
         clipped = np.minimum(np.maximum(model_px[lo:hi], -4.0 * far), 5.0 * far)
         _pose_evidence(clipped, reach_of[lo:hi], near, chance, row_starts, columns,
-                       grown_outline(clipped.reshape(-1, 2), min_margin, margin_share), tolerances, cell, reach, out[b],
-                       labels)
+                       grown_outline(clipped.reshape(-1, 2), min_margin, margin_share), tolerances, cell, reach,
+                       seen_layer, out[b], labels)
 
 
 @njit(nogil=True, cache=True)
@@ -451,7 +452,7 @@ def _disc(radius: float) -> list:
 @njit(nogil=True, cache=True)
 def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray, chance: np.ndarray,
                    row_starts: np.ndarray, columns: np.ndarray, outline: np.ndarray, tolerances: np.ndarray, cell: int,
-                   reach: int, out: np.ndarray, labels: np.ndarray) -> None:
+                   reach: int, seen_layer: int, out: np.ndarray, labels: np.ndarray) -> None:
     """What ``scoring.EdgeEvidence.shares`` counts for one pose, into ``out`` (5,).
 
     model_px (S, 2, 2) the projected visible model segments, pixels; segment s is looked up
@@ -468,9 +469,11 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
     out[3] the edge pixels inside the outline in seen cells, out[4] those of them within
     ``tolerance`` of a model segment. A cell (a ``cell``-pixel square) is seen when the
     model length confirmed in it, less what chance confirms, is at least half the model
-    length in it, or, holding none, in the cells within ``reach`` of it: where the model's
-    own edges are missing, or confirmed no more than chance would (dense texture), an
-    occluder may be in front, and its edges say nothing against the pose.
+    length in it, at the segments' own tolerances or at layer ``seen_layer`` of the maps
+    (a wider one: the edges of a feature the pose is turned a little off lie beside it), or,
+    holding none, in the cells within ``reach`` of it: where the model's own edges are
+    missing, or confirmed no more than chance would (dense texture), an occluder may be in
+    front, and its edges say nothing against the pose.
 
     labels (H, W) uint8, or (0, 0) to skip: each edge pixel counted in out[3] marked 1, or 2
     when also counted in out[4] (pictures of what the explained share counts).
@@ -482,6 +485,8 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
     cell_model = np.zeros((rows, cols))
     cell_confirmed = np.zeros((rows, cols))
     cell_chance = np.zeros((rows, cols))
+    wide_confirmed = np.zeros((rows, cols))
+    wide_chance = np.zeros((rows, cols))
     # the sums in locals, added in the same order: kept in registers rather than in ``out``
     length_sum, confirmed_sum, chance_sum = 0.0, 0.0, 0.0
     for s in range(model_px.shape[0]):
@@ -509,6 +514,9 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
                 cell_chance[r, c] += by_chance
                 if confirmed:
                     cell_confirmed[r, c] += weight
+                wide_chance[r, c] += weight * chance[seen_layer, b, y, x]
+                if near[seen_layer, b, y, x] != 0:
+                    wide_confirmed[r, c] += weight
     out[0], out[1], out[2] = length_sum, confirmed_sum, chance_sum
     # the outline's bounding box in the image
     x0, y0, x1, y1 = width, height, 0, 0
@@ -524,13 +532,17 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
     for r in range(y0 // cell, (y1 - 1) // cell + 1):
         for c in range(x0 // cell, (x1 - 1) // cell + 1):
             model, confirmed, expected = cell_model[r, c], cell_confirmed[r, c], cell_chance[r, c]
+            wide, wide_expected = wide_confirmed[r, c], wide_chance[r, c]
             if model == 0.0:  # no model edge here: judged by the cells around it
                 for rr in range(max(r - reach, 0), min(r + reach + 1, rows)):
                     for cc in range(max(c - reach, 0), min(c + reach + 1, cols)):
                         model += cell_model[rr, cc]
                         confirmed += cell_confirmed[rr, cc]
                         expected += cell_chance[rr, cc]
-            seen[r, c] = model > 0.0 and confirmed - expected >= 0.5 * model
+                        wide += wide_confirmed[rr, cc]
+                        wide_expected += wide_chance[rr, cc]
+            seen[r, c] = model > 0.0 and (confirmed - expected >= 0.5 * model
+                                          or wide - wide_expected >= 0.5 * model)
     # a point every pixel along the model, marked on a grid of the box grown by the tolerance;
     # an edge pixel is near the model if a point lies within the tolerance of it: looked up
     # for the counted edge pixels only, fewer than the points times the disc around each

@@ -70,7 +70,7 @@ def scored_tolerances(graph: AspectGraph, p: PoseParams) -> tuple[float, ...]:
     ``Frame.detect`` builds with the image's edges (``pose.outline_pixels`` only for a part
     with curved faces)."""
     soft = p.outline_pixels != p.inlier_pixels and bool(np.any(graph.seg_kind != SHARP))
-    return (p.inlier_pixels, p.outline_pixels) if soft else (p.inlier_pixels,)
+    return ((p.inlier_pixels, p.outline_pixels) if soft else (p.inlier_pixels,)) + (EdgeEvidence.SEEN_TOLERANCE,)
 
 
 def visible_rows(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -202,10 +202,12 @@ class EdgeEvidence:
       - *explained*: of the edge pixels inside the projected part's convex outline, grown
         by ``OUTLINE_MARGIN`` (at least ``min_margin_px``), those within ``tolerance`` of a
         projected model edge, counted only in *seen* cells (``SEEN_CELL`` squares where at
-        least half the model length is confirmed beyond chance; a cell without model
-        edges takes the cells up to ``SEEN_REACH`` away). An occluder hides model edges,
-        so its own edges fall in cells that are not seen and do not count against the
-        pose. The margin is what stops a small pose that fits one inner feature (a window
+        least half the model length is confirmed beyond chance, at the look-up tolerance
+        or at ``SEEN_TOLERANCE``; a cell without model edges takes the cells up to
+        ``SEEN_REACH`` away). An occluder hides model edges, so its own edges fall in cells
+        that are not seen and do not count against the pose; a pose turned a few degrees
+        off the part's features still has their edges beside its own, and the image's
+        edges there count against it. The margin is what stops a small pose that fits one inner feature (a window
         of the part) from explaining everything it covers: the part's edges around the
         window lie next to the window's seen edges.
       - *significance*: 1 - exp(-length x KL(confirmed share || chance) / ``SIGNIFICANT_PIXELS``),
@@ -243,6 +245,10 @@ class EdgeEvidence:
     #: that the outline's margin next to a seen model edge still counts
     SEEN_CELL = 16
     SEEN_REACH = 2
+    #: a cell is also seen where half its model length lies this near like edges beyond chance,
+    #: pixels: a pose turned a few degrees off its features has their edges beside its own, an
+    #: occluder hides them; 4 px beyond the look-up tolerance (docs/results/refinement.md)
+    SEEN_TOLERANCE = 6.0
     #: the confirmed evidence, in pixels of model length times nats of KL divergence from
     #: chance, at which the significance reaches 1 - 1/e: a part perfectly confirmed where
     #: chance is 1/4 (1.4 nats a pixel) needs about 115 px of edge for that, 350 px for 0.95.
@@ -477,12 +483,13 @@ class EdgeEvidence:
             tolerances, reach_of = (float(tolerance_px),), np.zeros(len(model_px), np.int64)
         else:
             tolerances, reach_of = (float(tolerance_px), float(soft_tolerance_px)), np.asarray(soft, np.int64)
+        seen_layer, tolerances = len(tolerances), tolerances + (self.SEEN_TOLERANCE,)
         near, chance = self.stacked(tolerances)
         spans = np.asarray(spans, np.int64)
         sums, run_on = np.zeros((len(spans) - 1, 5)), np.zeros((len(spans) - 1, 3))
         pose_evidence_kernel(model_px, reach_of, spans, float(min_size_px), near, chance,
                              self.row_starts, self.columns, np.array(tolerances), float(min_margin_px),
-                             self.OUTLINE_MARGIN, self.SEEN_CELL, self.SEEN_REACH, sums,
+                             self.OUTLINE_MARGIN, self.SEEN_CELL, self.SEEN_REACH, seen_layer, sums,
                              np.zeros((0, 0), np.uint8) if labels is None else labels)
         # probes within a pixel beyond the look-up tolerance of another model edge are that edge's
         run_on_kernel(model_px, spans, near, chance, *self.RUN_ON_PROBE, self.RUN_ON_MIN_LENGTH, tolerances[0] + 1.0,
