@@ -49,7 +49,8 @@ def overlay(image: np.ndarray, frame: Frame, graph: AspectGraph, R: np.ndarray, 
     model_px = frame.camera.project_model(graph.seg_3d[view], R, t)
     evidence = frame.evidence
     soft = graph.seg_kind[view] != SHARP
-    labels = evidence.counted_pixels(model_px, p.inlier_pixels, p.min_margin_pixels, soft, p.outline_pixels)
+    labels = evidence.counted_pixels(model_px, p.inlier_pixels, p.min_margin_pixels, soft, p.outline_pixels,
+                                      p.seen_pixels)
     outline = evidence.grown_outline(model_px.reshape(-1, 2), p.min_margin_pixels)
     inside = np.zeros(evidence.shape, np.uint8)
     cv2.fillPoly(inside, [np.round(outline).astype(np.int32)], 1)
@@ -65,7 +66,7 @@ def overlay(image: np.ndarray, frame: Frame, graph: AspectGraph, R: np.ndarray, 
     for segment, kind in zip(model_px, graph.seg_kind[view]):
         a, b = np.round((segment - [x0, y0]) * SCALE).astype(int)
         cv2.line(big, tuple(int(v) for v in a), tuple(int(v) for v in b), KIND_COLOURS[kind], 1)
-    shares = evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels, soft, p.outline_pixels)
+    shares = evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels, soft, p.outline_pixels, p.seen_pixels)
     caption = (f"score {shares.score:.2f}: confirmed {shares.confirmed:.2f}, explained {shares.explained:.2f} "
                f"({(labels == 1).sum()} of {(labels > 0).sum()} counted pixels unexplained), "
                f"significance {shares.significance:.2f}")

@@ -304,8 +304,8 @@ def main(argv=None) -> int:
                              near_correct=near < ADD_THRESHOLD, near_projected_correct=near_projected < PROJECTION_PX,
                              near_add=near_add, near_px=near_px, near_score=near_score, timings=estimate.timings,
                              support=support(edge_evidence(image, params.edges, False), truth_px, tolerance),
-                             explained=seen.evidence.shares(truth_px, tolerance,
-                                                            params.pose.min_margin_pixels).explained,
+                             explained=seen.evidence.shares(truth_px, tolerance, params.pose.min_margin_pixels,
+                                                            seen_tolerance_px=params.pose.seen_pixels).explained,
                              size=size, seconds=seconds, in_range=bool(
                                  near_end <= np.linalg.norm(target.t) <= far_end or far_end == 0),
                              colour_support=support(edge_evidence(image, params.edges, True), truth_px, tolerance)))

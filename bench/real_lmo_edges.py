@@ -94,7 +94,8 @@ def main(argv=None) -> int:
                 seen = frame_of[target.frame]
                 truth_px = camera.project_model(graph.seg_3d[graph.visible_segments(target.R, target.t)],
                                                 target.R, target.t)
-                shares = seen.evidence.shares(truth_px, params.pose.inlier_pixels, params.pose.min_margin_pixels)
+                shares = seen.evidence.shares(truth_px, params.pose.inlier_pixels, params.pose.min_margin_pixels,
+                                              seen_tolerance_px=params.pose.seen_pixels)
                 truth = float(pose_scores(graph, target.R[None], target.t[None], seen, params.pose)[0])
                 row = dict(variant=name, obj=obj, frame=target.frame, truth=truth, confirmed=shares.confirmed,
                            support=support(seen.evidence, truth_px, params.pose.inlier_pixels))

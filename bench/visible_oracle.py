@@ -70,11 +70,12 @@ def oracle_scores(estimator: Estimator, frame, entry) -> tuple[float, ...]:
     model_px = frame.camera.project_model(g.seg_3d[rows], truth.R, truth.t)
     soft = g.seg_kind[rows] != SHARP
     evidence, mask = frame.evidence, visible_mask(Path(entry.path))
-    shares = evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels, soft, p.outline_pixels)
+    shares = evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels, soft, p.outline_pixels, p.seen_pixels)
     pieces, soft_pieces = visible_pieces(model_px, soft, mask)
     seen = evidence.shares(pieces, p.inlier_pixels, p.min_margin_pixels, soft_pieces, p.outline_pixels) if len(pieces) \
         else shares._replace(confirmed=0.0)
-    labels = evidence.counted_pixels(model_px, p.inlier_pixels, p.min_margin_pixels, soft, p.outline_pixels)
+    labels = evidence.counted_pixels(model_px, p.inlier_pixels, p.min_margin_pixels, soft, p.outline_pixels,
+                                      p.seen_pixels)
     explained = float((labels[mask] == 2).sum() / max((labels[mask] > 0).sum(), 1))
     return (shares.score, shares._replace(confirmed=seen.confirmed).score,
             shares._replace(explained=explained).score,

@@ -78,11 +78,11 @@ def test_the_truth_outranks_near_poses_with_30_percent_hidden_behind_a_textured_
         assert evidence.shares(wrong, 2.0, MARGIN).score < truth - 0.25
 
 
-def test_cells_where_the_pose_lies_beside_the_parts_edges_count_against_it_and_hidden_ones_do_not(monkeypatch):
+def test_cells_where_the_pose_lies_beside_the_parts_edges_count_against_it_and_hidden_ones_do_not():
     """An L plate and its model shifted 4 px sideways: the vertical edges miss their image
-    edges at the look-up tolerance, and with the cells seen only there (SEEN_TOLERANCE at the
-    tolerance, as before) their unexplained image edges would not count. Beside them within
-    SEEN_TOLERANCE, they do: the explained share falls from 0.93 to about half. With the
+    edges at the look-up tolerance, and with the cells seen only there (``pose.seen_pixels``
+    off) their unexplained image edges would not count. Beside them within the default
+    ``pose.seen_pixels``, they do: the explained share falls from 0.93 to about half. With the
     plate's left 30 % under a plain occluder the hidden edges have no image edge beside them,
     and the truth's score stays within 0.02."""
     gray = np.full((300, 400), 90, np.uint8)
@@ -92,13 +92,13 @@ def test_cells_where_the_pose_lies_beside_the_parts_edges_count_against_it_and_h
     hidden = gray.copy()
     hidden[:, :160] = 30
 
-    def shares(image, pose):
-        return scoring.EdgeEvidence(*edge_stage(image.astype(np.float32))).shares(pose, 2.0, MARGIN)
+    def shares(image, pose, seen_pixels=PoseParams().seen_pixels):
+        return scoring.EdgeEvidence(*edge_stage(image.astype(np.float32))).shares(pose, 2.0, MARGIN,
+                                                                                   seen_tolerance_px=seen_pixels)
 
     beside, occluded = shares(gray, model + [4.0, 0.0]), shares(hidden, model)
-    monkeypatch.setattr(scoring.EdgeEvidence, "SEEN_TOLERANCE", 2.0)
-    assert beside.explained < shares(gray, model + [4.0, 0.0]).explained - 0.3
-    assert occluded.score == pytest.approx(shares(hidden, model).score, abs=0.02)
+    assert beside.explained < shares(gray, model + [4.0, 0.0], seen_pixels=0.0).explained - 0.3
+    assert occluded.score == pytest.approx(shares(hidden, model, seen_pixels=0.0).score, abs=0.02)
 
 
 def test_a_pose_too_far_on_pieces_of_the_parts_edges_is_told_by_the_edges_running_on():
@@ -354,14 +354,16 @@ def reference_support(edge_map, gray, model_px, tolerance):
     return near / total
 
 
-def reference_shares(evidence, model_px, tolerance):
+def reference_shares(evidence, model_px, tolerance, seen_tolerance):
     """EdgeEvidence.shares' two shares by their definitions, in plain numpy on whole-image
-    arrays: the chance-corrected share, the seen cells, the outline row by row, the model
-    drawn as points a pixel apart grown by the tolerance."""
+    arrays: the chance-corrected share, the seen cells (also at ``seen_tolerance`` when wider
+    than ``tolerance``), the outline row by row, the model drawn as points a pixel apart
+    grown by the tolerance."""
     h, w = evidence.shape
     model_px = np.clip(model_px, -4.0 * max(h, w), 5.0 * max(h, w))
     near, chance = evidence.near_like(tolerance), evidence.chance(tolerance)
-    wide, wide_chance = evidence.near_like(evidence.SEEN_TOLERANCE), evidence.chance(evidence.SEEN_TOLERANCE)
+    seen_tolerance = max(seen_tolerance, tolerance)  # no wider: the look-up tolerance's test again
+    wide, wide_chance = evidence.near_like(seen_tolerance), evidence.chance(seen_tolerance)
     cell, reach = evidence.SEEN_CELL, evidence.SEEN_REACH
     rows, cols = -(-h // cell), -(-w // cell)
     model_in, confirmed_in, chance_in, wide_in, wide_chance_in = np.zeros((5, rows, cols))
@@ -413,15 +415,16 @@ def reference_shares(evidence, model_px, tolerance):
             (drawn & inside).sum() / inside.sum() if inside.any() else 0.0)
 
 
+@pytest.mark.parametrize("seen_tolerance", [0.0, 6.0])
 @pytest.mark.parametrize("tolerance", [1.0, 2.0, 3.5])
-def test_edge_evidence_matches_the_distance_transform_definitions(evidence_image, tolerance):
+def test_edge_evidence_matches_the_distance_transform_definitions(evidence_image, tolerance, seen_tolerance):
     edge_map, gray, models = evidence_image
     evidence = evidence_of(edge_map, gray)
     for model_px in models:
         assert evidence.supports(model_px, np.array([0, len(model_px)]), tolerance)[0] == pytest.approx(
             reference_support(edge_map, gray, model_px, tolerance), abs=1e-12)
-        shares = evidence.shares(model_px, tolerance, MARGIN)
-        reference = reference_shares(evidence, model_px, tolerance)
+        shares = evidence.shares(model_px, tolerance, MARGIN, seen_tolerance_px=seen_tolerance)
+        reference = reference_shares(evidence, model_px, tolerance, seen_tolerance)
         assert shares.confirmed == pytest.approx(reference[0], abs=1e-5)
         assert shares.explained == pytest.approx(reference[1], abs=1e-12)
 

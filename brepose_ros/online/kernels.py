@@ -354,7 +354,7 @@ def pose_evidence_kernel(model_px: np.ndarray, reach_of: np.ndarray, spans: np.n
     """What ``scoring.EdgeEvidence.shares`` counts for B poses, into ``out`` (B, 5): pose b's
     projected visible model segments are ``model_px[spans[b]:spans[b + 1]]`` (pixels),
     segment s looked up within ``tolerances[reach_of[s]]``, cells seen also by layer
-    ``seen_layer`` of the maps (``_pose_evidence``).
+    ``seen_layer`` of the maps, if >= 0 (``_pose_evidence``).
 
     A pose without segments, or whose segments span less than ``min_size`` pixels
     (diagonal of their box), keeps zeros. The rest are clipped a few image sizes out (a pose
@@ -469,7 +469,7 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
     out[3] the edge pixels inside the outline in seen cells, out[4] those of them within
     ``tolerance`` of a model segment. A cell (a ``cell``-pixel square) is seen when the
     model length confirmed in it, less what chance confirms, is at least half the model
-    length in it, at the segments' own tolerances or at layer ``seen_layer`` of the maps
+    length in it, at the segments' own tolerances or at layer ``seen_layer`` of the maps if >= 0
     (a wider one: the edges of a feature the pose is turned a little off lie beside it), or,
     holding none, in the cells within ``reach`` of it: where the model's own edges are
     missing, or confirmed no more than chance would (dense texture), an occluder may be in
@@ -514,9 +514,10 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
                 cell_chance[r, c] += by_chance
                 if confirmed:
                     cell_confirmed[r, c] += weight
-                wide_chance[r, c] += weight * chance[seen_layer, b, y, x]
-                if near[seen_layer, b, y, x] != 0:
-                    wide_confirmed[r, c] += weight
+                if seen_layer >= 0:
+                    wide_chance[r, c] += weight * chance[seen_layer, b, y, x]
+                    if near[seen_layer, b, y, x] != 0:
+                        wide_confirmed[r, c] += weight
     out[0], out[1], out[2] = length_sum, confirmed_sum, chance_sum
     # the outline's bounding box in the image
     x0, y0, x1, y1 = width, height, 0, 0
@@ -542,7 +543,7 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
                         wide += wide_confirmed[rr, cc]
                         wide_expected += wide_chance[rr, cc]
             seen[r, c] = model > 0.0 and (confirmed - expected >= 0.5 * model
-                                          or wide - wide_expected >= 0.5 * model)
+                                          or (seen_layer >= 0 and wide - wide_expected >= 0.5 * model))
     # a point every pixel along the model, marked on a grid of the box grown by the tolerance;
     # an edge pixel is near the model if a point lies within the tolerance of it: looked up
     # for the counted edge pixels only, fewer than the points times the disc around each

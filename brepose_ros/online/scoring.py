@@ -61,7 +61,7 @@ def pose_scores(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame"
     spans = np.zeros(len(R) + 1, np.int64)
     spans[ahead + 1] = np.bincount(pose_of_row, minlength=len(ahead))
     counts = frame.evidence.counts(model_px, np.cumsum(spans), p.inlier_pixels, p.min_margin_pixels,
-                                   p.min_size_pixels, graph.seg_kind[rows] != SHARP, p.outline_pixels)
+                                   p.min_size_pixels, graph.seg_kind[rows] != SHARP, p.outline_pixels, p.seen_pixels)
     return np.array([frame.evidence.shares_of(c).score for c in counts])
 
 
@@ -70,7 +70,8 @@ def scored_tolerances(graph: AspectGraph, p: PoseParams) -> tuple[float, ...]:
     ``Frame.detect`` builds with the image's edges (``pose.outline_pixels`` only for a part
     with curved faces)."""
     soft = p.outline_pixels != p.inlier_pixels and bool(np.any(graph.seg_kind != SHARP))
-    return ((p.inlier_pixels, p.outline_pixels) if soft else (p.inlier_pixels,)) + (EdgeEvidence.SEEN_TOLERANCE,)
+    looked_up = (p.inlier_pixels, p.outline_pixels) if soft else (p.inlier_pixels,)
+    return looked_up + ((p.seen_pixels,) if p.seen_pixels > p.inlier_pixels else ())
 
 
 def visible_rows(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -98,7 +99,7 @@ def pose_shares(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame"
     rows = graph.visible_segments(R, t)
     model_px = frame.camera.project_model(graph.seg_3d[rows], R, t)
     shares = frame.evidence.shares(model_px, p.inlier_pixels, p.min_margin_pixels, graph.seg_kind[rows] != SHARP,
-                                   p.outline_pixels)
+                                   p.outline_pixels, p.seen_pixels)
     if len(model_px) == 0:
         return shares, 0.0, 0.0
     diagonal = float(np.hypot(*np.ptp(model_px.reshape(-1, 2), axis=0)))
@@ -203,7 +204,7 @@ class EdgeEvidence:
         by ``OUTLINE_MARGIN`` (at least ``min_margin_px``), those within ``tolerance`` of a
         projected model edge, counted only in *seen* cells (``SEEN_CELL`` squares where at
         least half the model length is confirmed beyond chance, at the look-up tolerance
-        or at ``SEEN_TOLERANCE``; a cell without model edges takes the cells up to
+        or at a wider ``seen_tolerance_px`` (``pose.seen_pixels``); a cell without model edges takes the cells up to
         ``SEEN_REACH`` away). An occluder hides model edges, so its own edges fall in cells
         that are not seen and do not count against the pose; a pose turned a few degrees
         off the part's features still has their edges beside its own, and the image's
@@ -245,10 +246,6 @@ class EdgeEvidence:
     #: that the outline's margin next to a seen model edge still counts
     SEEN_CELL = 16
     SEEN_REACH = 2
-    #: a cell is also seen where half its model length lies this near like edges beyond chance,
-    #: pixels: a pose turned a few degrees off its features has their edges beside its own, an
-    #: occluder hides them; 4 px beyond the look-up tolerance (docs/results/refinement.md)
-    SEEN_TOLERANCE = 6.0
     #: the confirmed evidence, in pixels of model length times nats of KL divergence from
     #: chance, at which the significance reaches 1 - 1/e: a part perfectly confirmed where
     #: chance is 1/4 (1.4 nats a pixel) needs about 115 px of edge for that, 350 px for 0.95.
@@ -442,12 +439,15 @@ class EdgeEvidence:
         return grown_outline(np.asarray(points, np.float64).reshape(-1, 2), float(min_margin_px), cls.OUTLINE_MARGIN)
 
     def shares(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float,
-               soft: np.ndarray | None = None, soft_tolerance_px: float | None = None) -> "Shares":
+               soft: np.ndarray | None = None, soft_tolerance_px: float | None = None,
+               seen_tolerance_px: float = 0.0) -> "Shares":
         """The ``Shares`` of a pose's projected visible model segments ``model_px``
         (S, 2, 2), pixels (class doc); the segments marked ``soft`` (S,) bool, outlines of
-        curved faces, are looked up within ``soft_tolerance_px`` instead."""
+        curved faces, are looked up within ``soft_tolerance_px`` instead; cells are also
+        seen at ``seen_tolerance_px`` when it exceeds ``tolerance_px``."""
         return self.shares_of(self.counts(model_px, np.array([0, len(model_px)]), tolerance_px, min_margin_px,
-                                          soft=soft, soft_tolerance_px=soft_tolerance_px)[0])
+                                          soft=soft, soft_tolerance_px=soft_tolerance_px,
+                                          seen_tolerance_px=seen_tolerance_px)[0])
 
     def shares_of(self, counts: np.ndarray) -> "Shares":
         """The ``Shares`` of a pose from its eight sums (``counts``)."""
@@ -461,18 +461,19 @@ class EdgeEvidence:
                       run_on=beyond_chance(ran_on, ran_by_chance, probes))
 
     def counted_pixels(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float,
-                       soft: np.ndarray | None = None, soft_tolerance_px: float | None = None) -> np.ndarray:
+                       soft: np.ndarray | None = None, soft_tolerance_px: float | None = None,
+                       seen_tolerance_px: float = 0.0) -> np.ndarray:
         """(H, W) uint8: the edge pixels the explained share of ``shares`` counts at this pose,
         2 where a model edge explains them, 1 where none does, 0 elsewhere (for pictures of
         what lowers a pose's score, bench/explained_overlay.py)."""
         labels = np.zeros(self.shape, np.uint8)
         self.counts(model_px, np.array([0, len(model_px)]), tolerance_px, min_margin_px, soft=soft,
-                    soft_tolerance_px=soft_tolerance_px, labels=labels)
+                    soft_tolerance_px=soft_tolerance_px, seen_tolerance_px=seen_tolerance_px, labels=labels)
         return labels
 
     def counts(self, model_px: np.ndarray, spans: np.ndarray, tolerance_px: float, min_margin_px: float,
                min_size_px: float = 0.0, soft: np.ndarray | None = None, soft_tolerance_px: float | None = None,
-               labels: np.ndarray | None = None) -> np.ndarray:
+               seen_tolerance_px: float = 0.0, labels: np.ndarray | None = None) -> np.ndarray:
         """(B, 8) ``kernels.pose_evidence_kernel``'s five sums and ``kernels.run_on_kernel``'s
         three for B poses, pose b's segments
         ``model_px[spans[b]:spans[b + 1]]`` (pixels), those marked ``soft`` looked up within
@@ -483,7 +484,9 @@ class EdgeEvidence:
             tolerances, reach_of = (float(tolerance_px),), np.zeros(len(model_px), np.int64)
         else:
             tolerances, reach_of = (float(tolerance_px), float(soft_tolerance_px)), np.asarray(soft, np.int64)
-        seen_layer, tolerances = len(tolerances), tolerances + (self.SEEN_TOLERANCE,)
+        # -1: cells seen at the look-up tolerances alone (no wider maps built)
+        seen_layer = len(tolerances) if seen_tolerance_px > tolerance_px else -1
+        tolerances += (float(seen_tolerance_px),) if seen_layer >= 0 else ()
         near, chance = self.stacked(tolerances)
         spans = np.asarray(spans, np.int64)
         sums, run_on = np.zeros((len(spans) - 1, 5)), np.zeros((len(spans) - 1, 3))
