@@ -2,6 +2,8 @@
 1 and 2 workers, and parameter changes from another thread while an image is in flight."""
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
 
@@ -85,6 +87,37 @@ def test_map_dealt_puts_every_chunks_arrays_back_in_order():
 
 def test_zero_workers_means_one_per_core():
     assert resolve_workers(0) == cpu_count() >= 1 and resolve_workers(3) == 3
+
+
+FAULTS_OF_A_SECOND_IMAGE = """
+import resource, sys
+import numpy as np
+from brepose_ros.online.workers import keep_freed_memory
+if sys.argv[1] == "keep":
+    assert keep_freed_memory()
+
+
+def image_maps():  # an image's evidence maps at two tolerances: 35 MB
+    return [np.ones((2, 8, 482, 642), np.uint8), np.ones((2, 8, 482, 642), np.float32),
+            np.ones((8, 480, 640), np.int32)]
+
+
+first = image_maps()
+del first
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+second = image_maps()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
+def test_a_second_images_maps_reuse_the_first_images_memory_once_freed_memory_is_kept():
+    def faults(mode: str) -> int:
+        return int(subprocess.run([sys.executable, "-c", FAULTS_OF_A_SECOND_IMAGE, mode], check=True,
+                                  capture_output=True, text=True).stdout)
+
+    assert faults("default") > 500  # mapped afresh, handed back when freed: faulted in again
+    assert faults("keep") < 100
 
 
 @pytest.fixture(scope="module")

@@ -66,7 +66,7 @@ from .confidence import load_calibration
 from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_shares, scored_tolerances
 from .search import TemplateSearch
 from .symmetry import check_rivals, check_twins
-from .workers import WorkerPool, resolve_workers
+from .workers import WorkerPool, keep_freed_memory, resolve_workers
 
 
 @dataclass
@@ -127,6 +127,7 @@ class Estimator:
     def __init__(self, graph: AspectGraph, params: EstimatorParams | None = None):
         self.graph = graph
         kernels.warm_up()  # compiled (or loaded from numba's cache) now, not on the first image
+        keep_freed_memory()
         self._params = params or EstimatorParams()
         self._hypotheses = TetradHypotheses(graph, self._params.matching)
         self._refiner = PoseRefiner(graph)

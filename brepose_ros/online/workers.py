@@ -10,6 +10,7 @@ pool threads.
 """
 from __future__ import annotations
 
+import ctypes
 import itertools
 import os
 from concurrent.futures import ThreadPoolExecutor, wait
@@ -32,6 +33,31 @@ def cpu_count() -> int:
 def resolve_workers(workers: int) -> int:
     """``matching.workers`` as a thread count: 0 means one per CPU core."""
     return cpu_count() if workers == 0 else max(1, workers)
+
+
+#: glibc ``mallopt`` options (malloc.h)
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
+#: arrays up to this size come from the heap rather than their own mapping (glibc's most)
+HEAP_ARRAYS_MB = 32
+#: freed heap memory kept for the next image rather than handed back to the kernel
+RETAINED_MB = 256
+
+
+def keep_freed_memory() -> bool:
+    """Ask glibc's malloc to keep the memory of an image's freed maps for the next image.
+
+    Every image builds 15-35 MB of evidence maps (``scoring.EdgeEvidence.bin_jobs``); by
+    default glibc maps each such array afresh and unmaps it when freed, so the next image's
+    pages fault in one by one, under a lock the worker threads share: 8-10 ms of a clean
+    image on two threads (docs/results/latency.md). Process-wide and idempotent; at most
+    ``RETAINED_MB`` stays mapped. False where there is no glibc (nothing changed)."""
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    return all(mallopt(option, value) == 1 for option, value in (
+        (_M_MMAP_THRESHOLD, HEAP_ARRAYS_MB << 20), (_M_TRIM_THRESHOLD, RETAINED_MB << 20),
+        (_M_TOP_PAD, HEAP_ARRAYS_MB << 20)))
 
 
 class WorkerPool:
