@@ -287,8 +287,9 @@ def main(argv=None) -> int:
                         help="with --report: the tables as if pose.min_confidence had been this (a pose of lower "
                              "confidence not found)")
     parser.add_argument("--min-score", type=float, default=0.0,
-                        help="with --report: the same for pose.min_score (a rule can only drop poses the run found: "
-                             "run at the lowest floor compared)")
+                        help="with --report: the same for pose.min_score (a rule can only drop poses the run found; "
+                             "not the same as a run at that floor: the twin check takes only twins scoring at least "
+                             "pose.min_score as rivals, so choose a floor by running at it)")
     args = parser.parse_args(argv)
     if args.report:
         rows = [row for path in args.report for row in json.loads(path.read_text())["rows"]]

@@ -234,6 +234,8 @@ def main(argv=None) -> int:
     parser.add_argument("--crop", action="store_true", help="oracle: estimate in the ground-truth region only")
     parser.add_argument("--overlays", type=int, default=3, help="successes and failures saved per object")
     parser.add_argument("--frames", type=int, help="only the first N frames (quick runs)")
+    parser.add_argument("--label", help="appended to the results file's name, so that runs of other code with the "
+                                        "same options keep their own file")
     parser.add_argument("--min-margin-px", type=float, help="the score's margin floor (default: the estimator's)")
     parser.add_argument("--light", action="store_true", help="also highlights, contrast and Canny thresholds")
     parser.add_argument("--render", action="store_true", help="renderings of the true poses instead of the photos")
@@ -333,7 +335,8 @@ def main(argv=None) -> int:
     run = "".join([f"_{args.params.stem}" if args.params else "", "_crop" if args.crop else "",
                    "_render" if args.render else "",
                    f"_range{args.known_range:g}" if args.known_range else "",
-                   f"_margin{args.min_margin_px:g}" if args.min_margin_px is not None else ""])
+                   f"_margin{args.min_margin_px:g}" if args.min_margin_px is not None else "",
+                   f"_{args.label}" if args.label else ""])
     (OUT / f"results{run}.json").write_text(json.dumps(rows, indent=1))
     return 0
 

@@ -41,6 +41,8 @@ def poses() -> dict[str, np.ndarray]:
     cache = REPO / "data" / "bench"
     cache.mkdir(parents=True, exist_ok=True)
     parts = PARTS + ([str(REAL_PART)] if REAL_PART.exists() else [])
+    if not REAL_PART.exists():
+        print(f"leaving out the Base attachment: {REAL_PART} is not there", file=sys.stderr)
     out = {}
     for name in parts:
         step = step_file(name, cache) if name in PARTS else Path(name)
@@ -72,7 +74,12 @@ def main(argv=None) -> int:
         return 0
     with np.load(args.compare) as saved:
         before = {k: saved[k] for k in saved.files}
-    differ = [k for k in sorted(set(before) | set(now))
+    run_here = {k.split("/")[0] for k in now}
+    not_run = sorted(k for k in before if k.split("/")[0] not in run_here)
+    if not_run:
+        print(f"{len(not_run)} saved poses of parts not run here ({', '.join(sorted({k.split('/')[0] for k in not_run}))}) "
+              "not compared", file=sys.stderr)
+    differ = [k for k in sorted((set(before) - set(not_run)) | set(now))
               if k not in before or k not in now or not np.array_equal(before[k], now[k], equal_nan=True)]
     print(f"{len(now)} poses, {len(now) - len(differ)} identical to the bit, {len(differ)} differ")
     both = [k for k in differ if k in before and k in now]
