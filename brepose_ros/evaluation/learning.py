@@ -177,6 +177,11 @@ def training_parts(cache: Path, shapes=TRAINING_SHAPES, n: int = 4, seed: int = 
     return train, held_out
 
 
+def standard_error(values: np.ndarray) -> float:
+    """The standard error of the mean of ``values`` (0 for fewer than two)."""
+    return float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
+
+
 @dataclass
 class Score:
     """One parameter set on a sample of images: the paper's method alone."""
@@ -190,7 +195,7 @@ class Score:
 
     @property
     def standard_error(self) -> float:
-        return float(np.std(self.errors, ddof=1) / np.sqrt(len(self.errors))) if len(self.errors) > 1 else 0.0
+        return standard_error(self.errors)
 
     def loss(self, budget_ms: float) -> float:
         """The mean er, plus the share by which the median time exceeds ``budget_ms``."""
@@ -234,7 +239,7 @@ def choose(defaults: Score, finalists: list[Score], budget_ms: float, margin: fl
     best = min(range(len(finalists)), key=lambda i: finalists[i].loss(budget_ms))
     gain = defaults.loss(budget_ms) - finalists[best].loss(budget_ms)
     difference = finalists[best].errors - defaults.errors
-    se = float(np.std(difference, ddof=1) / np.sqrt(len(difference))) if len(difference) > 1 else 0.0
+    se = standard_error(difference)
     summary = (f"held-out loss {finalists[best].loss(budget_ms):.4f} against the defaults' "
                f"{defaults.loss(budget_ms):.4f} (difference {-gain:+.4f}, standard error {se:.4f})")
     if gain > 0 and gain > margin * se:
@@ -263,6 +268,11 @@ def trial_record(number: int, values: dict, train: Score, budget_ms: float, seco
         "seconds": round(seconds, 1), "held_out_loss": None, "held_out_error_rate": None} | values
 
 
+def held_out_columns(held_out: Score, budget_ms: float) -> dict:
+    """A trial log row's held-out columns (``trial_record``) for a set re-scored there."""
+    return {"held_out_loss": round(held_out.loss(budget_ms), 4), "held_out_error_rate": round(held_out.error_rate, 4)}
+
+
 def learn(train, held_out, trials: int, timeout_s: float, latency_factor: float = 1.5, seed: int = 0,
           finalists: int = 3, on_record: Callable[[dict, list[dict]], None] | None = None,
           score: Callable[[object, EstimatorParams], Score] = evaluate) -> LearnResult:
@@ -288,8 +298,7 @@ def learn(train, held_out, trials: int, timeout_s: float, latency_factor: float 
     budget = latency_factor * default_train.median_ms
     scores: dict[int, Score] = {0: default_train}
     records = [trial_record(0, default_values, default_train, budget, time.perf_counter() - clock)]
-    records[0] |= {"held_out_loss": round(default_held_out.loss(budget), 4),
-                   "held_out_error_rate": round(default_held_out.error_rate, 4)}
+    records[0] |= held_out_columns(default_held_out, budget)
     if on_record is not None:
         on_record(records[0], records)
 
@@ -313,8 +322,7 @@ def learn(train, held_out, trials: int, timeout_s: float, latency_factor: float 
     held_out_scores = []
     for t in ranked:
         held_out_scores.append(score(held_out, defaults.with_flat(t.params)))
-        records[t.number] |= {"held_out_loss": round(held_out_scores[-1].loss(budget), 4),
-                              "held_out_error_rate": round(held_out_scores[-1].error_rate, 4)}
+        records[t.number] |= held_out_columns(held_out_scores[-1], budget)
         if on_record is not None:
             on_record(records[t.number], records)
     verdict = choose(default_held_out, held_out_scores, budget)
