@@ -75,11 +75,11 @@ def main(argv=None) -> int:
     with np.load(args.compare) as saved:
         before = {k: saved[k] for k in saved.files}
     run_here = {k.split("/")[0] for k in now}
-    not_run = sorted(k for k in before if k.split("/")[0] not in run_here)
+    not_run = {k for k in before if k.split("/")[0] not in run_here}
     if not_run:
-        print(f"{len(not_run)} saved poses of parts not run here ({', '.join(sorted({k.split('/')[0] for k in not_run}))}) "
-              "not compared", file=sys.stderr)
-    differ = [k for k in sorted((set(before) - set(not_run)) | set(now))
+        parts = sorted({k.split("/")[0] for k in not_run})
+        print(f"{len(not_run)} saved poses of parts not run here ({', '.join(parts)}) not compared", file=sys.stderr)
+    differ = [k for k in sorted((set(before) - not_run) | set(now))
               if k not in before or k not in now or not np.array_equal(before[k], now[k], equal_nan=True)]
     print(f"{len(now)} poses, {len(now) - len(differ)} identical to the bit, {len(differ)} differ")
     both = [k for k in differ if k in before and k in now]

@@ -147,7 +147,8 @@ def test_within_its_colour_regions_the_search_finds_a_part_smaller_than_the_defa
     size = 100.0  # the part's diameter, pixels
     part_t = np.array([0.03, -0.02, camera.focal * graph.model_diameter / size])
     desk = np.array(DESK, np.float32) * np.random.default_rng(3).uniform(0.7, 1.1, (480, 640, 1))
-    image = render(camera, [Placed(mesh, R, part_t - R @ graph.model_center, Material(color=tuple(np.array(BROWN) / 255)))],
+    brown = Material(color=tuple(np.array(BROWN) / 255))
+    image = render(camera, [Placed(mesh, R, part_t - R @ graph.model_center, brown)],
                    background=desk.astype(np.uint8), color=True).image
     estimator = Estimator(graph)
     try:

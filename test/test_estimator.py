@@ -215,8 +215,8 @@ def test_a_start_climbed_at_an_earlier_stage_of_the_image_is_not_climbed_again(m
     starts = [Candidate(0.6 - 0.01 * k, rot_z(np.radians(20.0 * k)), np.array([0.0, 0.0, 0.3]), None)
               for k in range(6)]
     climbed = []
-    monkeypatch.setattr(refiner, "climb_together", lambda cs, *a, **k: [climbed.append(c) or Candidate(c.score + 0.1, c.R, c.t, None)
-                                                                         for c in cs])
+    monkeypatch.setattr(refiner, "climb_together",
+                        lambda cs, *a, **k: [climbed.append(c) or Candidate(c.score + 0.1, c.R, c.t, None) for c in cs])
     monkeypatch.setattr(refiner, "polished", lambda cs, *a, **k: list(cs))
     climbs = {}
     assert refiner.best(starts[2:], None, PoseParams(climb_candidates=2), climbs=climbs).score == pytest.approx(0.68)
