@@ -3,7 +3,8 @@ against the score, the fitted confidence, and the found rule chosen on them.
 
     python bench/confidence.py [--n 8] [--parts sharp_bracket rounded_bracket ...] [--check-parts shaft ...]
                                [--params FILE.yaml] [--records FILE.json | --from-records FILE.json]
-                               [--fit brepose_ros/confidence.yaml] [--confidence-plot docs/figures/found_rule.png]
+                               [--fit brepose_ros/confidence.yaml | --calibration brepose_ros/confidence.yaml]
+                               [--confidence-plot docs/figures/found_rule.png]
 
 Each part's estimator sees images of its part (positives: clean, and off-centre with 20, 30
 and 50 % occlusion among clutter), where a detection is correct when the pose succeeds
@@ -52,7 +53,7 @@ from bench.graphs import cached_graph_path  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.figures import pyplot, save_figure  # noqa: E402
 from brepose_ros.evaluation.metrics import (ModelPoints, calibrate_min_score, evaluate_scene,  # noqa: E402
-                                            precision_recall, reliability)
+                                            precision_lower_bound, precision_recall, reliability)
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros import __version__  # noqa: E402
 from brepose_ros.online.confidence import FEATURES, SHIPPED, Calibration, features  # noqa: E402
@@ -171,12 +172,17 @@ def main(argv=None) -> int:
     parser.add_argument("--fit", type=Path, metavar="FILE",
                         help="fit the confidence on --parts' estimates and write its calibration here (the "
                              f"shipped one is brepose_ros/{SHIPPED})")
+    parser.add_argument("--calibration", type=Path, metavar="FILE",
+                        help="judge this calibration (e.g. the shipped brepose_ros/confidence.yaml) on the estimates "
+                             "instead of fitting one: found rules, trusted rule, reliability and --confidence-plot")
     parser.add_argument("--features", nargs="+", default=list(FEATURES), choices=list(FEATURES),
                         help="features of the fitted confidence")
     parser.add_argument("--l2", type=float, default=L2, help="L2 weight of the fit (standardised features)")
     parser.add_argument("--confidence-plot", type=Path, default=REPO / "data" / "bench" / "found_rule.png",
                         help="found rules (precision against recall) and the confidence's reliability")
     args = parser.parse_args(argv)
+    if args.calibration and args.fit:
+        parser.error("--calibration judges a fit, --fit makes one: give one of them")
     cache = REPO / "data" / "bench"
     cache.mkdir(parents=True, exist_ok=True)
     params = EstimatorParams.load(args.params) if args.params else EstimatorParams()
@@ -238,7 +244,11 @@ def main(argv=None) -> int:
                   f"without): at {th:.3f} precision {p:.3f}, recall {r:.3f}, {d} detections")
     plot(args.plot, curves, scores, correct, positive, calibrated_apart or calibrated, args.precision)
     print(f"\nwrote {args.plot}")
-    calibration = fit_confidence(tuning, tuple(args.features), args.l2, args)
+    if args.calibration:
+        calibration = Calibration.load(args.calibration)
+        print(f"\nthe calibration of {args.calibration}, fitted on {calibration.provenance.get('commit', '?')}")
+    else:
+        calibration = fit_confidence(tuning, tuple(args.features), args.l2, args)
     report_confidence(calibration, tuning, checked, args)
     return 0
 
@@ -348,6 +358,13 @@ def report_confidence(calibration: Calibration, tuning: list[dict], checked: lis
         print(f"trusted rule (at that floor, most right poses with precision >= {TRUSTED_PRECISION:g} on the tuning "
               "parts, look-alikes' images left out): " +
               ("none" if trusted is None else f"pose.min_confidence {trusted:g}"))
+    if trusted is not None:
+        # the level is chosen on a few tens of poses: say what precision they support
+        for label, o, among in (("tuning parts, look-alikes' images left out", tuning, tuning.apart), *(
+                (label, outcomes[label], None) for label in sets if label != "tuning parts")):
+            found, right, _, _ = o.rule(chosen[0], trusted, among)
+            print(f"  {label}: {right} of {found} right, precision at least "
+                  f"{precision_lower_bound(right, found):.2f} (Wilson 95 % interval)")
     header = " | ".join(f"{label}: found, right, precision, recall" for label in sets)
     print(f"\n| rule | {header} |\n|---|" + "---|" * len(sets))
 

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import yaml
 
-from brepose_ros.evaluation.metrics import reliability
+from brepose_ros.evaluation.metrics import precision_lower_bound, reliability
 from brepose_ros.online.confidence import FEATURES, Calibration, Logistic, features, load_calibration, shipped_path
 from brepose_ros.online.estimator import Estimate, is_found, not_found_reason
 from brepose_ros.online.scoring import Shares
@@ -87,6 +87,18 @@ def test_the_expected_calibration_error_measures_the_gap():
     weights = np.where(stated > 0.5, 2.0, 1.0)
     _, rows = reliability(stated, stated > 0.3, weights)
     assert rows[-1][0] == pytest.approx(2 * rows[0][0], rel=0.1)
+
+
+def test_the_precision_lower_bound_is_wilsons_and_tightens_with_more_poses():
+    assert precision_lower_bound(8, 10) == pytest.approx(0.4902, abs=1e-4)  # the textbook Wilson interval
+    assert precision_lower_bound(11, 11) == pytest.approx(11 / (11 + 1.96 ** 2))  # all right: n / (n + z^2)
+    assert precision_lower_bound(0, 0) == 0.0
+    # the same measured precision supports more the more poses it rests on
+    bounds = [precision_lower_bound(19 * n, 20 * n) for n in (1, 4, 16, 64)]
+    assert all(a < b < 0.95 for a, b in zip(bounds, bounds[1:]))
+    assert bounds[-1] > 0.93
+    # a wider interval (z) gives a lower end
+    assert precision_lower_bound(19, 20, z=2.58) < precision_lower_bound(19, 20)
 
 
 def calibration():
@@ -249,3 +261,30 @@ def test_the_trusted_rule_reaches_its_precision_on_the_estimates_it_is_chosen_am
     found, right, precision, recall = outcomes.rule(0.55, level, outcomes.apart)
     assert (found, right, precision, recall) == (4, 4, 1.0, 4 / 6)
     assert outcomes.rule(0.55, level)[2] == pytest.approx(4 / 6)  # the look-alikes' poses still pass it
+
+
+def test_the_bench_judges_a_given_calibration_without_fitting_one(tmp_path, capsys):
+    """bench/confidence.py --calibration: the found and trusted rules of the shipped file on
+    stored estimates, as choose_rule and choose_rule_at give them; no calibration is written."""
+    import json
+    from pathlib import Path
+    from bench.confidence import Outcomes, choose_rule, choose_rule_at, main
+
+    stored = json.loads((Path(__file__).resolve().parents[1] / "docs/results/confidence_records.json").read_text())
+    parts = ["sharp_bracket", "base_attachment"]
+    records = tmp_path / "records.json"
+    records.write_text(json.dumps([r for r in stored if r["owner"] in parts and r["part"] in parts]))
+    plots = [tmp_path / "scores.png", tmp_path / "rules.png"]
+    argv = ["--from-records", str(records), "--parts", *parts, "--calibration", str(shipped_path()),
+            "--plot", str(plots[0]), "--confidence-plot", str(plots[1])]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    outcomes = Outcomes(json.loads(records.read_text()), load_calibration(""))
+    floor, level = choose_rule(outcomes)
+    assert f"pose.min_score {floor:g}, pose.min_confidence {level:g}" in printed
+    trusted = choose_rule_at(outcomes, floor, 0.95, outcomes.apart)
+    assert f"pose.min_confidence {trusted:g}" in printed.split("trusted rule")[1].splitlines()[0]
+    assert "confidence fitted on" not in printed and all(p.exists() for p in plots)
+    with pytest.raises(SystemExit):
+        main(argv + ["--fit", str(tmp_path / "fit.yaml")])
+    assert not (tmp_path / "fit.yaml").exists()
