@@ -177,8 +177,8 @@ class PoseParams(Ranged):
         "reported as not found. The default, with pose.min_score 0.55, was chosen by bench/confidence.py on the "
         "tuning parts to find at least as many right poses as score >= 0.6 at no lower precision "
         "(docs/results/confidence.md). 0.45, the bench's trusted rule (95 % of the reported poses right on the "
-        "tuning parts, the look-alike brackets' images left out), reports about half the right poses, 83-100 % of "
-        "them right on the bench's leave-out parts", 0.08, 0.0, 1.0)
+        "tuning parts, the look-alike brackets' images left out), reports about half the right poses, 91 % of "
+        "them right on the bench's leave-out parts (30 of 33)", 0.08, 0.0, 1.0)
     prior: float = doc(
         "how often the part is in view, as a share of the images (1: always); the confidence is moved by Bayes' "
         "rule from the mix it was fitted at (half the images, brepose_ros/confidence.yaml) to this, so that it is "
