@@ -25,7 +25,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
+import fcntl
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -149,17 +151,30 @@ def overridden_params(overrides: list[str]) -> EstimatorParams:
 def scene(cache: Path, name: str, step: Path, condition: str, images: int | range, distractors,
           look: str = "varied", span: tuple[float, float] = SPAN, seed: int = 100):
     """Images ``images`` (a range, or a count from the first) of a bench part's cached scene in
-    one condition (``scene_path``), grown anew if it holds fewer."""
+    one condition (``scene_path``), grown anew if it holds fewer.
+
+    Bench processes share the cache, so a scene is grown beside the old one under a lock and
+    swapped in by renames: another process reading the old images meanwhile still finds them
+    (image i depends only on the seed and i, so both folders agree where they overlap)."""
     folder = scene_path(cache, name, condition, look, span, seed)
     config = SceneConfig(span=span, look=look, **CONDITIONS[condition])
     if isinstance(images, int):
         images = range(images)
-    if (folder / "gt.json").exists():
-        cached = load_scene(folder)
-        if len(cached.entries) >= images.stop:
-            return dataclasses.replace(cached, entries=cached.entries[images.start:images.stop])
-        shutil.rmtree(folder)
-    generate_scene(step, folder, images.stop, seed=seed, config=config, distractors=distractors)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    with open(folder.with_name(folder.name + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if (folder / "gt.json").exists():
+            cached = load_scene(folder)
+            if len(cached.entries) >= images.stop:
+                return dataclasses.replace(cached, entries=cached.entries[images.start:images.stop])
+        growing = folder.with_name(f"{folder.name}.growing-{os.getpid()}")
+        shutil.rmtree(growing, ignore_errors=True)
+        generate_scene(step, growing, images.stop, seed=seed, config=config, distractors=distractors)
+        old = folder.with_name(f"{folder.name}.old-{os.getpid()}")
+        if folder.exists():
+            folder.rename(old)
+        growing.rename(folder)
+        shutil.rmtree(old, ignore_errors=True)
     grown = load_scene(folder)
     return dataclasses.replace(grown, entries=grown.entries[images.start:])
 

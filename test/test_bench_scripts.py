@@ -12,3 +12,15 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
 def test_the_bench_script_imports(script):
     module = importlib.import_module(f"bench.{script}")
     assert callable(getattr(module, "main", None)) or script == "graphs"
+
+
+def test_a_grown_bench_scene_keeps_its_first_images_and_leaves_no_side_folders(tmp_path, sample_step):
+    from bench.accuracy import scene
+
+    first = scene(tmp_path, "part", sample_step, "clean", 1, distractors=[])
+    before = first.entries[0].path.read_bytes()
+    grown = scene(tmp_path, "part", sample_step, "clean", range(1, 3), distractors=[])
+    assert [e.path.name for e in grown.entries] == ["000001.png", "000002.png"]
+    again = scene(tmp_path, "part", sample_step, "clean", 3, distractors=[])
+    assert again.entries[0].path.read_bytes() == before
+    assert sorted(p.name for p in again.folder.parent.iterdir()) == [again.folder.name, again.folder.name + ".lock"]
