@@ -128,6 +128,10 @@ def test_a_pose_too_far_on_pieces_of_the_parts_edges_is_told_by_the_edges_runnin
     assert evidence.shares(near, 2.0, MARGIN).run_on < 0.02
 
 
+#: the window of maps over the whole 240 x 320 image with its border
+WHOLE = np.array([0, 0, 240, 320], np.int64)
+
+
 def test_the_run_on_kernel_counts_probes_beyond_ends_off_other_model_edges():
     """Against a plain count: one horizontal model edge from x 100 to 140 on an image edge
     from 60 to 200. Its probes reach 0.25 x 40 = 10 px past each end from 4 px out (clear 3):
@@ -140,8 +144,8 @@ def test_the_run_on_kernel_counts_probes_beyond_ends_off_other_model_edges():
     edge = np.array([[[100.0, 120.0], [140.0, 120.0]]])
     crossing = np.array([[[150.0, 100.0], [150.0, 140.0]]])
     short = np.array([[[100.0, 120.0], [104.0, 120.0]]])
-    kernels.run_on_kernel(np.concatenate([edge, edge, crossing, short]), np.array([0, 1, 3, 4]), near, chance, 0.25,
-                          6.0, 30.0, 10.0, 3.0, out)
+    kernels.run_on_kernel(np.concatenate([edge, edge, crossing, short]), np.array([0, 1, 3, 4]), near, chance,
+                          WHOLE, 0.25, 6.0, 30.0, 10.0, 3.0, out)
     assert out[0].tolist() == [20.0, 20.0, 0.0]
     # right of the end (x 144-153) the points within 3 px of x = 150 (147-153) are the model's;
     # the crossing edge's own 20 probes (above and below it) find no image edge
@@ -158,7 +162,7 @@ def test_a_model_edge_off_the_image_hides_no_run_on_probe_inside_it():
     chance = np.zeros(near.shape, np.float32)
     out = np.zeros((1, 3))
     segments = np.array([[[100.0, 0.0], [140.0, 0.0]], [[140.0, -2.0], [160.0, -2.0]]])
-    kernels.run_on_kernel(segments, np.array([0, 2]), near, chance, 0.25, 6.0, 30.0, 10.0, 3.0, out)
+    kernels.run_on_kernel(segments, np.array([0, 2]), near, chance, WHOLE, 0.25, 6.0, 30.0, 10.0, 3.0, out)
     assert out[0].tolist() == [20.0, 20.0, 0.0]
 
 
@@ -224,7 +228,7 @@ def test_chance_is_the_share_of_near_pixels_in_the_window_to_the_bit():
     rounds some shares differently, so a like-for-like swap would have failed here."""
     evidence = scoring.EdgeEvidence(*edge_stage(random_lines(5, (240, 320), 60)))
     window = (scoring.EdgeEvidence.CHANCE_WINDOW,) * 2
-    near, chance = evidence.near_like(2.0).view(np.uint8), evidence.chance(2.0)
+    near, chance = whole(evidence.maps((2.0,)))
     assert len(np.unique(chance)) > 100  # many counts, sparse to dense
     for b in range(scoring.EdgeEvidence.BINS):
         share = cv2.boxFilter(near[b, 1:-1, 1:-1].astype(np.float32), -1, window, borderType=cv2.BORDER_REFLECT)
@@ -258,11 +262,10 @@ def test_maps_built_per_bin_on_threads_equal_those_built_on_first_use(monkeypatc
         pool.close()
     for ours, theirs in zip(prepared.nearest_like(), lazy.nearest_like()):
         assert np.array_equal(ours, theirs)
-    for tolerance in (2.0, 3.0):
-        assert np.array_equal(prepared.near_like(tolerance), lazy.near_like(tolerance))
-        assert np.array_equal(prepared.chance(tolerance), lazy.chance(tolerance))
-    for ours, theirs in zip(prepared.stacked((2.0, 3.0)), lazy.stacked((2.0, 3.0))):
-        assert np.array_equal(ours, theirs)
+    ours, theirs = prepared.maps((2.0, 3.0)), lazy.maps((2.0, 3.0))
+    assert ours.tolerances == theirs.tolerances
+    for mine, lazily in zip(ours[1:], theirs[1:]):
+        assert np.array_equal(mine, lazily)
 
 
 def test_the_nearest_edge_table_names_each_pixels_nearest_like_edge_pixel():
@@ -300,6 +303,74 @@ def edge_stage(gray):
     """Canny's edge map and the gradient it ran on, at the default edge parameters."""
     dx, dy = gradients(gray, EdgeParams())
     return canny_from_gradients(dx, dy, EdgeParams()), dx, dy
+
+
+def whole(maps, layer=0):
+    """One layer of ``LookUpMaps`` over the whole image with its border, 0 outside their window."""
+    top, left, h, w = maps.window
+    rows, cols = maps.near.shape[2:]
+    near = np.zeros((scoring.EdgeEvidence.BINS, h + 2, w + 2), np.uint8)
+    chance = np.zeros(near.shape, np.float32)
+    near[:, top:top + rows, left:left + cols] = maps.near[layer]
+    chance[:, top:top + rows, left:left + cols] = maps.chance[layer]
+    return near, chance
+
+
+def whole_image_maps(evidence, tolerance):
+    """The look-up maps by their definition, on the whole image: per bin the like edges
+    dilated by the chamfer ball, and the share of such pixels in the chance window (the box
+    filter's border reflected), with a border of 0."""
+    h, w = evidence.shape
+    near = np.zeros((evidence.BINS, h + 2, w + 2), np.uint8)
+    chance = np.zeros(near.shape, np.float32)
+    window = (evidence.CHANCE_WINDOW,) * 2
+    for b in range(evidence.BINS):
+        near[b, 1:-1, 1:-1] = cv2.dilate(evidence.like_edges[b], scoring.chamfer_ball(tolerance))
+        chance[b, 1:-1, 1:-1] = cv2.boxFilter(near[b, 1:-1, 1:-1].astype(np.float32), -1, window,
+                                              borderType=cv2.BORDER_REFLECT)
+    return near, chance
+
+
+def a_part_and_specks(shape, part, specks):
+    """A float32 gray image: a bright square of side ``part`` at the centre and ``specks``
+    (x, y) small dark squares, e.g. by the image's edges."""
+    gray = np.full(shape, 90, np.uint8)
+    cy, cx = shape[0] // 2, shape[1] // 2
+    gray[cy - part // 2:cy + part // 2, cx - part // 2:cx + part // 2] = 220
+    for x, y in specks:
+        gray[max(y - 2, 0):y + 3, max(x - 2, 0):x + 3] = 10
+    return gray.astype(np.float32)
+
+
+@pytest.mark.parametrize("picture", ["centre", "corner", "bottom right", "lines", "band", "blank"])
+@pytest.mark.parametrize("tolerances", [(2.0,), (2.0, 6.0), (1.0, 3.5, 6.0)])
+def test_look_up_maps_over_their_window_are_the_whole_images_maps(picture, tolerances):
+    """EdgeEvidence.maps builds the maps over the edge pixels' box grown by the widest
+    tolerance's reach and half the chance window: expanded to the whole image they are the
+    maps by their definition to the bit, for edges far from the image's sides (the window a
+    small part of it), by a corner or a side (the window clipped there: the box filter
+    reflects at the image's side as before), across the image, without edges in some bins
+    or at all; a look-up clipped into the window reads the whole image's value anywhere."""
+    shape = (240, 320)
+    gray = {"centre": a_part_and_specks(shape, 60, []), "corner": a_part_and_specks(shape, 40, [(1, 2)]),
+            "bottom right": a_part_and_specks(shape, 40, [(318, 237), (300, 239)]),
+            "lines": random_lines(6, shape, 20), "band": horizontal_band(shape),
+            "blank": np.full(shape, 90, np.float32)}[picture]
+    evidence = scoring.EdgeEvidence(*edge_stage(gray))
+    maps = evidence.maps(tolerances)
+    if picture == "centre":
+        assert maps.near.shape[2] * maps.near.shape[3] < 0.3 * (shape[0] + 2) * (shape[1] + 2)
+    rng = np.random.default_rng(1)
+    x, y = rng.integers(0, shape[1] + 2, 5000), rng.integers(0, shape[0] + 2, 5000)
+    bins = rng.integers(0, evidence.BINS, 5000)
+    for layer, tolerance in enumerate(tolerances):
+        near, chance = whole_image_maps(evidence, tolerance)
+        mine, my_chance = whole(maps, layer)
+        assert np.array_equal(mine, near) and np.array_equal(my_chance.view(np.int32), chance.view(np.int32))
+        if layer == 0:
+            looked_up, looked_up_chance = maps.at(bins, x, y)
+            assert np.array_equal(looked_up, near[bins, y, x] != 0)
+            assert np.array_equal(looked_up_chance, chance[bins, y, x])
 
 
 def test_chamfer_ball_dilation_is_the_thresholded_distance_transform():
@@ -361,9 +432,9 @@ def reference_shares(evidence, model_px, tolerance, seen_tolerance):
     grown by the tolerance."""
     h, w = evidence.shape
     model_px = np.clip(model_px, -4.0 * max(h, w), 5.0 * max(h, w))
-    near, chance = evidence.near_like(tolerance), evidence.chance(tolerance)
+    near, chance = whole_image_maps(evidence, tolerance)
     seen_tolerance = max(seen_tolerance, tolerance)  # no wider: the look-up tolerance's test again
-    wide, wide_chance = evidence.near_like(seen_tolerance), evidence.chance(seen_tolerance)
+    wide, wide_chance = whole_image_maps(evidence, seen_tolerance)
     cell, reach = evidence.SEEN_CELL, evidence.SEEN_REACH
     rows, cols = -(-h // cell), -(-w // cell)
     model_in, confirmed_in, chance_in, wide_in, wide_chance_in = np.zeros((5, rows, cols))

@@ -289,11 +289,12 @@ def warm_up() -> None:
     scaled_int16(gradient, gradient, 16.0)
     median_of_every_other(gradient)
     near, row_starts, columns = np.zeros((1, 8, 6, 6), np.uint8), np.zeros(5, np.int64), np.zeros(0, np.int64)
+    window = np.array([0, 0, 4, 4], np.int64)
     pose_evidence_kernel(segments * 3.0, np.zeros(2, np.int64), np.array([0, 2]), 1.0, near,
-                         np.zeros((1, 8, 6, 6), np.float32), row_starts, columns, np.ones(1), 1.0, 0.2, 2, 1, 0,
-                         np.zeros((1, 5)), np.zeros((0, 0), np.uint8))
-    run_on_kernel(segments * 3.0, np.array([0, 2]), near, np.zeros((1, 8, 6, 6), np.float32), 0.25, 6.0, 30.0, 10.0,
-                  3.0, np.zeros((1, 3)))
+                         np.zeros((1, 8, 6, 6), np.float32), window, row_starts, columns, np.ones(1), 1.0, 0.2, 2, 1,
+                         0, np.zeros((1, 5)), np.zeros((0, 0), np.uint8))
+    run_on_kernel(segments * 3.0, np.array([0, 2]), near, np.zeros((1, 8, 6, 6), np.float32), window, 0.25, 6.0,
+                  30.0, 10.0, 3.0, np.zeros((1, 3)))
 
 
 @njit(nogil=True, cache=True)
@@ -348,13 +349,13 @@ def _nearest_lines(model_2d: np.ndarray, image_2d: np.ndarray, i_ux: np.ndarray,
 
 @njit(nogil=True, cache=True)
 def pose_evidence_kernel(model_px: np.ndarray, reach_of: np.ndarray, spans: np.ndarray, min_size: float,
-                         near: np.ndarray, chance: np.ndarray, row_starts: np.ndarray, columns: np.ndarray,
-                         tolerances: np.ndarray, min_margin: float, margin_share: float, cell: int, reach: int,
-                         seen_layer: int, out: np.ndarray, labels: np.ndarray) -> None:
+                         near: np.ndarray, chance: np.ndarray, window: np.ndarray, row_starts: np.ndarray,
+                         columns: np.ndarray, tolerances: np.ndarray, min_margin: float, margin_share: float, cell: int,
+                         reach: int, seen_layer: int, out: np.ndarray, labels: np.ndarray) -> None:
     """What ``scoring.EdgeEvidence.shares`` counts for B poses, into ``out`` (B, 5): pose b's
     projected visible model segments are ``model_px[spans[b]:spans[b + 1]]`` (pixels),
     segment s looked up within ``tolerances[reach_of[s]]``, cells seen also by layer
-    ``seen_layer`` of the maps, if >= 0 (``_pose_evidence``).
+    ``seen_layer`` of the maps, if >= 0, the maps over their ``window`` (``_pose_evidence``).
 
     A pose without segments, or whose segments span less than ``min_size`` pixels
     (diagonal of their box), keeps zeros. The rest are clipped a few image sizes out (a pose
@@ -363,7 +364,7 @@ def pose_evidence_kernel(model_px: np.ndarray, reach_of: np.ndarray, spans: np.n
     poses, GIL released: per pose in numpy, the projection, outline and clipping cost more
     than the counting and held the GIL. ``labels`` as ``_pose_evidence``'s.
     """
-    height, width = near.shape[2] - 2, near.shape[3] - 2
+    height, width = window[2], window[3]
     far = float(max(height, width))
     for b in range(len(spans) - 1):
         out[b, :] = 0.0
@@ -378,7 +379,7 @@ def pose_evidence_kernel(model_px: np.ndarray, reach_of: np.ndarray, spans: np.n
         if math.hypot(x_hi - x_lo, y_hi - y_lo) < min_size:
             continue
         clipped = np.minimum(np.maximum(model_px[lo:hi], -4.0 * far), 5.0 * far)
-        _pose_evidence(clipped, reach_of[lo:hi], near, chance, row_starts, columns,
+        _pose_evidence(clipped, reach_of[lo:hi], near, chance, window, row_starts, columns,
                        grown_outline(clipped.reshape(-1, 2), min_margin, margin_share), tolerances, cell, reach,
                        seen_layer, out[b], labels)
 
@@ -451,16 +452,17 @@ def _disc(radius: float) -> list:
 
 @njit(nogil=True, cache=True)
 def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray, chance: np.ndarray,
-                   row_starts: np.ndarray, columns: np.ndarray, outline: np.ndarray, tolerances: np.ndarray, cell: int,
-                   reach: int, seen_layer: int, out: np.ndarray, labels: np.ndarray) -> None:
+                   window: np.ndarray, row_starts: np.ndarray, columns: np.ndarray, outline: np.ndarray,
+                   tolerances: np.ndarray, cell: int, reach: int, seen_layer: int, out: np.ndarray,
+                   labels: np.ndarray) -> None:
     """What ``scoring.EdgeEvidence.shares`` counts for one pose, into ``out`` (5,).
 
     model_px (S, 2, 2) the projected visible model segments, pixels; segment s is looked up
     within ``tolerances[reach_of[s]]`` pixels and drawn within ``tolerance = tolerances[0]``;
-    near (T, BINS, H + 2, W + 2) 0/1 per tolerance and direction bin, within that tolerance
-    of a like edge pixel, a False border around the image;
-    chance (T, BINS, H + 2, W + 2) per tolerance and direction bin the local share of such
-    pixels, bordered alike; the edge pixels of row y at the columns
+    near (T, BINS, rows, cols) 0/1 per tolerance and direction bin, within that tolerance
+    of a like edge pixel, and chance (T, BINS, rows, cols) the local share of such pixels,
+    both over the ``window`` of the image with a border of 0 (``scoring.LookUpMaps``, H x W
+    the image's ``window[2:]``); the edge pixels of row y at the columns
     ``columns[row_starts[y]:row_starts[y + 1]]`` (ascending); outline (P, 2) the grown convex
     outline's corners.
 
@@ -479,7 +481,7 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
     when also counted in out[4] (pictures of what the explained share counts).
     """
     out[:] = 0.0
-    bins, height, width = near.shape[1], near.shape[2] - 2, near.shape[3] - 2
+    bins, height, width = near.shape[1], window[2], window[3]
     tolerance = tolerances[0]
     rows, cols = (height + cell - 1) // cell, (width + cell - 1) // cell
     cell_model = np.zeros((rows, cols))
@@ -502,8 +504,9 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
             px, py = ax + frac * dx, ay + frac * dy
             x = min(max(int(np.rint(px)) + 1, 0), width + 1)
             y = min(max(int(np.rint(py)) + 1, 0), height + 1)
-            confirmed = near[k, b, y, x] != 0
-            by_chance = weight * chance[k, b, y, x]
+            my, mx = _in_window(x, y, window, near)
+            confirmed = near[k, b, my, mx] != 0
+            by_chance = weight * chance[k, b, my, mx]
             length_sum += weight
             chance_sum += by_chance
             if confirmed:
@@ -515,8 +518,8 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
                 if confirmed:
                     cell_confirmed[r, c] += weight
                 if seen_layer >= 0:
-                    wide_chance[r, c] += weight * chance[seen_layer, b, y, x]
-                    if near[seen_layer, b, y, x] != 0:
+                    wide_chance[r, c] += weight * chance[seen_layer, b, my, mx]
+                    if near[seen_layer, b, my, mx] != 0:
                         wide_confirmed[r, c] += weight
     out[0], out[1], out[2] = length_sum, confirmed_sum, chance_sum
     # the outline's bounding box in the image
@@ -583,6 +586,14 @@ def _pose_evidence(model_px: np.ndarray, reach_of: np.ndarray, near: np.ndarray,
                     out[4] += 1.0
                 if labels.shape[0] > 0:
                     labels[y, x] = 2 if near_model else 1
+
+
+@njit(nogil=True, cache=True)
+def _in_window(x: int, y: int, window: np.ndarray, maps: np.ndarray) -> tuple[int, int]:
+    """The (row, column) of ``maps`` (..., rows, cols) over the ``window`` (``_pose_evidence``)
+    that holds pixel (x, y) of the bordered image, clipped into the window: its outermost
+    rows and columns are 0, like the image's maps everywhere outside it."""
+    return (min(max(y - window[0], 0), maps.shape[-2] - 1), min(max(x - window[1], 0), maps.shape[-1] - 1))
 
 
 @njit(nogil=True, cache=True)
@@ -756,8 +767,9 @@ def _direction_bin(dx: float, dy: float, bins: int) -> int:
 
 
 @njit(nogil=True, cache=True)
-def run_on_kernel(segments: np.ndarray, spans: np.ndarray, near: np.ndarray, chance: np.ndarray, share: float,
-                  min_probe: float, max_probe: float, min_length: float, clear: float, out: np.ndarray) -> None:
+def run_on_kernel(segments: np.ndarray, spans: np.ndarray, near: np.ndarray, chance: np.ndarray, window: np.ndarray,
+                  share: float, min_probe: float, max_probe: float, min_length: float, clear: float,
+                  out: np.ndarray) -> None:
     """Where the image's edges run on past the ends of B poses' projected model edges, into
     ``out`` (B, 3): pose b's segments are ``segments[spans[b]:spans[b + 1]]`` (pixels).
 
@@ -766,12 +778,13 @@ def run_on_kernel(segments: np.ndarray, spans: np.ndarray, near: np.ndarray, cha
     (within ``min_probe`` - ``max_probe``) pixels out; probe points inside the image and
     farther than ``clear`` from every segment of the pose (a corner turns into the next
     model edge, a curve into its next piece: there the model itself has an edge) are
-    counted. out[0] their number, out[1] those a like edge confirms (``near[0, bin, y, x]``,
-    the segment's direction bin), out[2] the number chance would confirm (``chance``).
+    counted. out[0] their number, out[1] those a like edge confirms (``near[0, bin]`` at the
+    point, the segment's direction bin), out[2] the number chance would confirm (``chance``);
+    the maps over their ``window`` as ``pose_evidence_kernel``'s.
     A pose too small or too far lies on pieces of the part's longer edges, which run on past
     its ends; occlusion cuts edges short and adds no run-on, clutter only by chance.
     """
-    bins, height, width = near.shape[1], near.shape[2] - 2, near.shape[3] - 2
+    bins, height, width = near.shape[1], window[2], window[3]
     far = float(max(height, width))
     radius = int(math.floor(clear))
     reach = int(math.ceil(clear + 1.0 + max_probe)) + radius + 1
@@ -819,9 +832,10 @@ def run_on_kernel(segments: np.ndarray, spans: np.ndarray, near: np.ndarray, cha
                             break
                     if on_model:
                         continue
+                    my, mx = _in_window(x + 1, y + 1, window, near)
                     out[b, 0] += 1.0
-                    out[b, 1] += near[0, k, y + 1, x + 1]
-                    out[b, 2] += chance[0, k, y + 1, x + 1]
+                    out[b, 1] += near[0, k, my, mx]
+                    out[b, 2] += chance[0, k, my, mx]
 
 
 @njit(nogil=True, cache=True)

@@ -176,6 +176,29 @@ def kl_divergence(share: float, chance: float) -> float:
     return float(share * np.log(share / chance) + (1.0 - share) * np.log((1.0 - share) / (1.0 - chance)))
 
 
+class LookUpMaps(NamedTuple):
+    """``EdgeEvidence.maps``: per tolerance (``tolerances``) and direction bin, 1 where a
+    like edge pixel lies within the tolerance (``near``, uint8) and the share of such pixels
+    in the ``EdgeEvidence.CHANCE_WINDOW`` square about each pixel (``chance``, float32), each
+    (T, BINS, rows, cols), over a window of the image with a one-pixel border (pixel (x, y)
+    at (x + 1, y + 1)): ``window`` (4,) int64 its first row and column there, and the
+    image's height and width. Outside the window both are 0, and so are the window's
+    outermost rows and columns: a look-up clipped into the window reads what the whole
+    image's maps hold (``kernels._in_window``)."""
+
+    tolerances: tuple[float, ...]
+    near: np.ndarray
+    chance: np.ndarray
+    window: np.ndarray
+
+    def at(self, bins: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Layer 0's ``near`` (bool) and ``chance`` of direction ``bins`` at pixels (x, y)
+        of the bordered image (int arrays, within it)."""
+        rows, cols = self.near.shape[2:]
+        y, x = np.clip(y - self.window[0], 0, rows - 1), np.clip(x - self.window[1], 0, cols - 1)
+        return self.near[0][bins, y, x] != 0, self.chance[0][bins, y, x]
+
+
 class EdgeEvidence:
     """What the image says about edges, prepared once per image for scoring poses.
 
@@ -226,7 +249,7 @@ class EdgeEvidence:
     ``tolerance``, so none computes distances: with OpenCV's 3x3 chamfer distance
     (``cv2.distanceTransform(..., DIST_L2, 3)``, an exact shortest path in integer steps)
     "within r of a set" is the set dilated by the chamfer ball of radius r
-    (``chamfer_ball``), several times cheaper than the transform. ``near_like`` dilates,
+    (``chamfer_ball``), several times cheaper than the transform. ``maps`` dilates,
     once per tolerance, the edge pixels of each direction bin together with the two next
     to it, so that a model point needs one look-up.
     """
@@ -283,49 +306,35 @@ class EdgeEvidence:
         self.like_edges = np.zeros((self.BINS,) + self.shape, np.uint8)
         for step in (-1, 0, 1):
             self.like_edges[(self._bins + step) % self.BINS, rows, cols] = 1
-        self._near_like = {}  # tolerance -> like_edges dilated by its chamfer ball
-        self._chance = {}  # tolerance -> chance()
-        self._stacked = {}  # tolerances -> stacked()
+        self._maps: dict[tuple[float, ...], LookUpMaps] = {}  # tolerances -> maps()
         self._nearest_like: tuple[np.ndarray, np.ndarray] | None = None  # nearest_like(), built on first use
         self._nearest_lock = threading.Lock()  # the refinement's threads share one image's evidence
-        self._filling: tuple = ()  # bin_jobs' tolerances and the maps its jobs fill
+        self._filling: tuple = ()  # the maps and the nearest-edge labels bin_jobs' jobs fill
 
     def bin_jobs(self, tolerances: tuple[float, ...] = ()) -> list[Callable[[], np.ndarray | None]]:
-        """One job per direction bin building its piece of ``nearest_like`` and of ``near_like``
-        and ``chance`` at each of ``tolerances``: OpenCV calls, which release the GIL, so that
-        the bins run on several threads (``Frame.detect``). The maps are filled in place, the
-        table's pieces returned: hand them to ``adopt`` once every job ran, before any other
-        use of the evidence. The same maps as built on first use."""
-        tolerances = tuple(tolerances)
-        shape = (len(tolerances), self.BINS, self.shape[0] + 2, self.shape[1] + 2)
+        """One job per direction bin building its piece of ``nearest_like`` and of the
+        ``maps`` at ``tolerances``: OpenCV calls, which release the GIL, so that the bins run
+        on several threads (``Frame.detect``). The maps are filled in place, the table's
+        pieces returned: hand them to ``adopt`` once every job ran, before any other use of
+        the evidence. The same maps as built on first use."""
         # left unset here, each bin's job setting all of its own: zeroing the maps (about 35 MB
-        # at two tolerances) cost the calling thread 1.5-2 ms an image while the others waited
-        self._filling = (tolerances, np.empty(shape, np.uint8), np.empty(shape, np.float32),
-                         np.empty((self.BINS,) + self.shape, np.int32))
+        # at two tolerances on a whole 640 x 480 image) cost the calling thread 1.5-2 ms an image
+        self._filling = (self._unset_maps(tuple(tolerances)), np.empty((self.BINS,) + self.shape, np.int32))
         return [partial(self._fill_bin, b, *self._filling) for b in range(self.BINS)]
 
     def adopt(self, nearest_pieces: list[np.ndarray | None]) -> None:
         """Keep the maps ``bin_jobs`` filled and the nearest-edge table of its jobs' results."""
-        tolerances, near, chance, labels = self._filling
+        maps, labels = self._filling
         with self._nearest_lock:
             self._nearest_like = labels, self._nearest_table(nearest_pieces)
-        for i, t in enumerate(tolerances):
-            self._near_like[t], self._chance[t] = near[i].view(bool), chance[i]
-        if tolerances:
-            self._stacked[tolerances] = near, chance
+        if maps.tolerances:
+            self._maps[maps.tolerances] = maps
 
-    def _fill_bin(self, b: int, tolerances: tuple[float, ...], near: np.ndarray, chance: np.ndarray,
-                  labels: np.ndarray) -> np.ndarray | None:
-        """Direction bin ``b``'s rows of the maps ``near`` and ``chance`` (tolerance, bin, ...) and
-        of the nearest-edge ``labels``, every element (``bin_jobs`` leaves them unset): the
-        maps' one-pixel border 0, a bin without pixels labelled 0; its piece of the table
-        (``_nearest_bin``)."""
-        for maps in (near, chance):
-            maps[:, b, [0, -1]] = 0
-            maps[:, b, :, [0, -1]] = 0
-        for i, t in enumerate(tolerances):
-            self._dilated(b, t, near[i, b, 1:-1, 1:-1])
-            self._boxed(near[i, b, 1:-1, 1:-1], chance[i, b, 1:-1, 1:-1])
+    def _fill_bin(self, b: int, maps: "LookUpMaps", labels: np.ndarray) -> np.ndarray | None:
+        """Direction bin ``b``'s rows of the ``maps`` and of the nearest-edge ``labels``, every
+        element (``bin_jobs`` leaves them unset; a bin without pixels labelled 0); its piece
+        of the table (``_nearest_bin``)."""
+        self._fill_maps(b, maps)
         table = self._nearest_bin(b, labels)
         if table is None:
             labels[b] = 0
@@ -350,7 +359,7 @@ class EdgeEvidence:
         pts = model_px[:, 0][seg_idx] + frac[:, None] * delta[seg_idx]
         weight = (lengths / counts)[seg_idx]
         x, y = np.clip(np.rint(pts).astype(int) + 1, 0, [w + 1, h + 1]).T
-        near = self.near_like(tolerance_px)[self._bins_of(delta)[seg_idx], y, x]
+        near = self._layer(tolerance_px).at(self._bins_of(delta)[seg_idx], x, y)[0]
         out = np.zeros(len(spans) - 1)
         point_spans = np.concatenate([[0], np.cumsum(counts)])[spans]
         for b, (lo, hi) in enumerate(zip(point_spans[:-1], point_spans[1:])):
@@ -366,26 +375,70 @@ class EdgeEvidence:
             return 0.0
         h, w = self.shape
         x, y = np.clip(np.rint(pieces.mean(axis=1)).astype(int) + 1, 0, [w + 1, h + 1]).T
-        bins = self.orientation_bin(pieces)
-        confirmed = self.near_like(tolerance_px)[bins, y, x].sum()
-        return beyond_chance(confirmed, self.chance(tolerance_px)[bins, y, x].sum(), len(pieces))
+        near, chance = self._layer(tolerance_px).at(self.orientation_bin(pieces), x, y)
+        return beyond_chance(near.sum(), chance.sum(), len(pieces))
 
-    def near_like(self, tolerance_px: float) -> np.ndarray:
-        """(BINS, H + 2, W + 2) bool: per direction bin, the pixels within ``tolerance_px`` of
-        a like edge pixel (``like_edges`` dilated by the chamfer ball), with one pixel of
-        False around the image: points outside it are clipped onto that border instead of
-        being masked out (a mask costs several array operations). Cached per tolerance."""
-        if tolerance_px not in self._near_like:
-            near = np.zeros((self.BINS, self.shape[0] + 2, self.shape[1] + 2), np.uint8)
+    def maps(self, tolerances: tuple[float, ...]) -> "LookUpMaps":
+        """The ``LookUpMaps`` at ``tolerances``: per tolerance and direction bin, the pixels
+        within the tolerance of a like edge pixel (``like_edges`` dilated by the chamfer ball)
+        and the chance map of that (``_boxed``). Built on first use unless ``bin_jobs`` built
+        them; cached per tuple of tolerances."""
+        if tolerances not in self._maps:
+            maps = self._unset_maps(tolerances)
             for b in range(self.BINS):
-                self._dilated(b, tolerance_px, near[b, 1:-1, 1:-1])
-            self._near_like[tolerance_px] = near.view(bool)  # 0/1 bytes, dilated from 0/1
-        return self._near_like[tolerance_px]
+                self._fill_maps(b, maps)
+            self._maps[tolerances] = maps
+        return self._maps[tolerances]
 
-    def _dilated(self, b: int, tolerance_px: float, out: np.ndarray) -> None:
-        """Bin ``b``'s like edges dilated by the chamfer ball of ``tolerance_px``, written into
-        ``out`` (uint8, a view into the stacked maps: OpenCV writes there, no copy)."""
-        cv2.dilate(self.like_edges[b], chamfer_ball(tolerance_px), dst=out)
+    def _layer(self, tolerance_px: float) -> "LookUpMaps":
+        """Maps holding ``tolerance_px`` as their first layer: one already built (they hold
+        the look-up tolerance first), else built for it alone."""
+        for tolerances, maps in tuple(self._maps.items()):  # a copy: another thread may add maps
+            if tolerances[0] == tolerance_px:
+                return maps
+        return self.maps((tolerance_px,))
+
+    def _unset_maps(self, tolerances: tuple[float, ...]) -> "LookUpMaps":
+        """``LookUpMaps`` at ``tolerances``, allocated over their window, values unset.
+
+        Both maps are 0 farther than the widest tolerance's chamfer ball plus half the
+        ``CHANCE_WINDOW`` from every edge pixel: the window is the edge pixels' bounding box
+        grown by that and one pixel more, all 0, so that a look-up clipped into it reads the
+        same as the whole image's map (a clean image's part covers a tenth to a third of it,
+        and builds that much). Every bin shares the window, so the maps stack."""
+        h, w = self.shape
+        if len(self.pixels) and tolerances:
+            margin = chamfer_ball(max(tolerances)).shape[0] // 2 + self.CHANCE_WINDOW // 2 + 1
+            (x_lo, y_lo), (x_hi, y_hi) = self.pixels.min(axis=0), self.pixels.max(axis=0)
+            # in the coordinates of the image with its border: pixel (x, y) at (x + 1, y + 1)
+            top, left = max(y_lo + 1 - margin, 0), max(x_lo + 1 - margin, 0)
+            bottom, right = min(y_hi + 2 + margin, h + 2), min(x_hi + 2 + margin, w + 2)
+        else:
+            top, left, bottom, right = 0, 0, 1, 1  # the border's corner: 0 everywhere
+        shape = (len(tolerances), self.BINS, bottom - top, right - left)
+        return LookUpMaps(tolerances, np.empty(shape, np.uint8), np.empty(shape, np.float32),
+                          np.array([top, left, h, w], np.int64))
+
+    def _fill_maps(self, b: int, maps: "LookUpMaps") -> None:
+        """Direction bin ``b``'s rows of ``maps``, every element: the image's border 0, the
+        rest dilated (``cv2.dilate`` writes into the view of the stacked maps, no copy) and
+        boxed. On the window alone both are the whole image's to the bit: a dilation has no
+        like pixel beyond the window's edges to reach, and the box filter's reflected border
+        at an edge inside the image reflects zeros (the window reaches half the box farther
+        than the dilated pixels)."""
+        top, left, h, w = (int(v) for v in maps.window)
+        rows, cols = maps.near.shape[2:]
+        # the window's part of the image, in the window's coordinates
+        y0, y1, x0, x1 = max(1 - top, 0), min(h + 1 - top, rows), max(1 - left, 0), min(w + 1 - left, cols)
+        for layers in (maps.near, maps.chance):
+            layers[:, b, :y0], layers[:, b, y1:], layers[:, b, :, :x0], layers[:, b, :, x1:] = 0, 0, 0, 0
+        if y1 <= y0 or x1 <= x0:
+            return
+        like = self.like_edges[b, top + y0 - 1:top + y1 - 1, left + x0 - 1:left + x1 - 1]
+        for i, tolerance in enumerate(maps.tolerances):
+            near = maps.near[i, b, y0:y1, x0:x1]
+            cv2.dilate(like, chamfer_ball(tolerance), dst=near)
+            self._boxed(near, maps.chance[i, b, y0:y1, x0:x1])
 
     def nearest_like(self) -> tuple[np.ndarray, np.ndarray]:
         """Per direction bin and pixel, the nearest pixel of ``like_edges``: (BINS, H, W)
@@ -484,50 +537,34 @@ class EdgeEvidence:
             tolerances, reach_of = (float(tolerance_px),), np.zeros(len(model_px), np.int64)
         else:
             tolerances, reach_of = (float(tolerance_px), float(soft_tolerance_px)), np.asarray(soft, np.int64)
-        # -1: cells seen at the look-up tolerances alone (no wider maps built)
-        seen_layer = len(tolerances) if seen_tolerance_px > tolerance_px else -1
-        tolerances += (float(seen_tolerance_px),) if seen_layer >= 0 else ()
-        near, chance = self.stacked(tolerances)
+        wide = seen_tolerance_px > tolerance_px  # else cells seen at the look-up tolerances alone
+        maps, layers = self._holding(tolerances + ((float(seen_tolerance_px),) if wide else ()))
         spans = np.asarray(spans, np.int64)
         sums, run_on = np.zeros((len(spans) - 1, 5)), np.zeros((len(spans) - 1, 3))
-        pose_evidence_kernel(model_px, reach_of, spans, float(min_size_px), near, chance,
-                             self.row_starts, self.columns, np.array(tolerances), float(min_margin_px),
-                             self.OUTLINE_MARGIN, self.SEEN_CELL, self.SEEN_REACH, seen_layer, sums,
+        pose_evidence_kernel(model_px, layers[reach_of], spans, float(min_size_px), maps.near, maps.chance,
+                             maps.window, self.row_starts, self.columns, np.array(maps.tolerances),
+                             float(min_margin_px), self.OUTLINE_MARGIN, self.SEEN_CELL, self.SEEN_REACH,
+                             int(layers[-1]) if wide else -1, sums,
                              np.zeros((0, 0), np.uint8) if labels is None else labels)
         # probes within a pixel beyond the look-up tolerance of another model edge are that edge's
-        run_on_kernel(model_px, spans, near, chance, *self.RUN_ON_PROBE, self.RUN_ON_MIN_LENGTH, tolerances[0] + 1.0,
-                      run_on)
+        run_on_kernel(model_px, spans, maps.near, maps.chance, maps.window, *self.RUN_ON_PROBE,
+                      self.RUN_ON_MIN_LENGTH, tolerance_px + 1.0, run_on)
         return np.hstack([sums, run_on])
 
-    def stacked(self, tolerances: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-        """``near_like`` (as uint8) and ``chance`` of each tolerance stacked, (T, BINS, H + 2,
-        W + 2) each: what the kernel looks up. Cached per tuple of tolerances."""
-        if tolerances not in self._stacked:
-            if len(tolerances) == 1:  # views, no copy
-                self._stacked[tolerances] = (self.near_like(tolerances[0]).view(np.uint8)[None],
-                                             self.chance(tolerances[0])[None])
-            else:
-                self._stacked[tolerances] = (np.stack([self.near_like(t).view(np.uint8) for t in tolerances]),
-                                             np.stack([self.chance(t) for t in tolerances]))
-        return self._stacked[tolerances]
-
-    def chance(self, tolerance_px: float) -> np.ndarray:
-        """(BINS, H + 2, W + 2) float32: per direction bin, the chance that a model point of
-        that direction is confirmed here, the share of pixels within ``tolerance_px`` of a
-        like edge pixel (``near_like``) in the ``CHANCE_WINDOW`` square around it, with a
-        border of 0 like ``near_like``. Cached per tolerance."""
-        if tolerance_px not in self._chance:
-            near = self.near_like(tolerance_px).view(np.uint8)
-            chance = np.zeros(near.shape, np.float32)
-            for b in range(self.BINS):
-                self._boxed(near[b, 1:-1, 1:-1], chance[b, 1:-1, 1:-1])
-            self._chance[tolerance_px] = chance
-        return self._chance[tolerance_px]
+    def _holding(self, tolerances: tuple[float, ...]) -> tuple["LookUpMaps", np.ndarray]:
+        """Maps holding all ``tolerances``, the first of them first (the kernels draw and probe
+        at layer 0), and each one's layer in them: the maps ``Frame.detect`` built for the
+        graph's scores when they hold them (a batch without soft edges skips the outlines'
+        layer), else built for these tolerances."""
+        for held, maps in tuple(self._maps.items()):  # a copy: another thread may add maps
+            if held[0] == tolerances[0] and set(tolerances) <= set(held):
+                return maps, np.array([held.index(t) for t in tolerances], np.int64)
+        return self.maps(tolerances), np.arange(len(tolerances), dtype=np.int64)
 
     def _boxed(self, near: np.ndarray, out: np.ndarray) -> None:
-        """The share of set pixels of one bin's ``near_like`` map (uint8, no border) in the
-        ``CHANCE_WINDOW`` square about each pixel, written into ``out`` (float32, a view like
-        ``_dilated``'s). The window's counts straight from the uint8 map, divided by its area
+        """The share of set pixels of one bin's near map (uint8, no border) in the
+        ``CHANCE_WINDOW`` square about each pixel, written into ``out`` (float32, a view into
+        the stacked maps like the dilation's). The window's counts straight from the uint8 map, divided by its area
         in float32: the same shares to the bit as the normalised filter of the map made
         float (every count 0 to 961 rounds alike), a third cheaper; OpenCV's normalised
         filter of the uint8 map rounds differently."""
