@@ -76,7 +76,7 @@ def kind_shares(frame: Frame, model_px: np.ndarray, tolerance: float) -> tuple[f
     lengths = np.linalg.norm(delta, axis=1)
     segment, frac = samples_along(np.maximum(np.ceil(lengths / 2.0).astype(int), 1))
     points = model_px[segment, 0] + frac[:, None] * delta[segment]
-    labels, pixels = frame.evidence.nearest_like()  # per direction bin and pixel, the nearest like edge pixel
+    labels, _, pixels = frame.evidence.nearest_like()  # per direction bin and pixel, the nearest like edge pixel
     height, width = frame.evidence.shape
     x = np.clip(np.rint(points[:, 0]).astype(int), 0, width - 1)
     y = np.clip(np.rint(points[:, 1]).astype(int), 0, height - 1)

@@ -260,7 +260,7 @@ def test_maps_built_per_bin_on_threads_equal_those_built_on_first_use(monkeypatc
         prepared.adopt(pool.map(lambda job: job(), jobs))
     finally:
         pool.close()
-    for ours, theirs in zip(prepared.nearest_like(), lazy.nearest_like()):
+    for ours, theirs in zip(prepared.nearest_like(3.0), lazy.nearest_like(3.0)):
         assert np.array_equal(ours, theirs)
     ours, theirs = prepared.maps((2.0, 3.0)), lazy.maps((2.0, 3.0))
     assert ours.tolerances == theirs.tolerances
@@ -274,7 +274,8 @@ def test_the_nearest_edge_table_names_each_pixels_nearest_like_edge_pixel():
     itself, as a plain reference), and that pixel is as near as the nearest to within the
     5x5 chamfer's few per cent."""
     evidence = scoring.EdgeEvidence(*edge_stage(random_lines(5, (120, 160), 25)))
-    labels, table = evidence.nearest_like()
+    labels, origin, table = evidence.nearest_like()
+    assert labels.shape == (evidence.BINS, 120, 160) and not origin.any()
     rows, cols = np.mgrid[:120, :160]
     for b in range(evidence.BINS):
         like = evidence.like_edges[b]
@@ -287,6 +288,49 @@ def test_the_nearest_edge_table_names_each_pixels_nearest_like_edge_pixel():
         assert np.array_equal(nearest, by_label[reference_labels])
         exact = cv2.distanceTransform(1 - like, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         assert (np.hypot(nearest[..., 0] - cols, nearest[..., 1] - rows) <= 1.05 * exact + 1e-6).all()
+
+
+@pytest.mark.parametrize("picture", ["centre", "corner", "bottom right", "lines", "band", "blank"])
+@pytest.mark.parametrize("reach", [2.0, 6.0, 20.0])
+def test_nearest_edges_over_their_window_are_the_whole_images_and_pair_alike(picture, reach):
+    """EdgeEvidence.nearest_like(reach) labels the edge pixels' box grown by the reach: there
+    the labels are the whole image's transform's to the bit (the proof in its doc), and a
+    point anywhere in or near the image, paired within any radius up to the reach
+    (kernels.nearest_like_edge), pairs with the same edge pixel or none as on the whole
+    image's labels. A window over more than WHOLE_LABELS_SHARE of the image is the whole."""
+    shape = (240, 320)
+    gray = {"centre": a_part_and_specks(shape, 60, []), "corner": a_part_and_specks(shape, 40, [(1, 2)]),
+            "bottom right": a_part_and_specks(shape, 40, [(318, 237), (300, 239)]),
+            "lines": random_lines(7, shape, 4), "band": horizontal_band(shape),
+            "blank": np.full(shape, 90, np.float32)}[picture]
+    stage = edge_stage(gray)
+    windowed, whole_image = scoring.EdgeEvidence(*stage), scoring.EdgeEvidence(*stage)
+    labels, origin, table = windowed.nearest_like(reach)
+    all_labels, all_origin, all_table = whole_image.nearest_like()
+    assert np.array_equal(table, all_table) and not all_origin.any()
+    (top, left), (rows, cols) = origin, labels.shape[1:]
+    assert np.array_equal(labels, all_labels[:, top:top + rows, left:left + cols])
+    if picture == "centre":
+        assert rows * cols < 0.3 * shape[0] * shape[1]
+    if picture == "lines":
+        assert rows * cols == shape[0] * shape[1]  # spread over the image: the whole
+    rng = np.random.default_rng(2)
+    for u, v, direction, radius in zip(rng.uniform(-3, shape[1] + 3, 3000), rng.uniform(-3, shape[0] + 3, 3000),
+                                       rng.integers(0, windowed.BINS, 3000), rng.uniform(0.5, reach, 3000)):
+        mine = kernels.nearest_like_edge(labels, origin, table, direction, u, v, radius)
+        theirs = kernels.nearest_like_edge(all_labels, all_origin, all_table, direction, u, v, radius)
+        assert mine[0] == theirs[0] and (not mine[0] or mine == theirs)  # where none pairs, the pixel is unused
+
+
+def test_nearest_edges_reach_wider_when_asked():
+    """A wider reach than the table has builds it again over a wider window (the whole
+    image without a reach); a narrower one keeps it."""
+    evidence = scoring.EdgeEvidence(*edge_stage(a_part_and_specks((240, 320), 60, [])))
+    narrow = evidence.nearest_like(2.0)
+    assert evidence.nearest_like(1.0) is narrow
+    wider = evidence.nearest_like(10.0)
+    assert wider.labels.shape[1] == narrow.labels.shape[1] + 16
+    assert evidence.nearest_like().labels.shape[1:] == (240, 320)
 
 
 def random_lines(seed, shape, count):

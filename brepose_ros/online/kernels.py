@@ -282,7 +282,7 @@ def warm_up() -> None:
                           2.0, 1.0, 0.25, np.empty((1, 2), np.float32))
     align_on_edges_kernel(R, t, np.array([[2.0]]), np.array([[0.0, 0.0, -1.0]]), np.zeros(3), np.array([0, 4]), square,
                           np.ones(4), np.array([100.0, 100.0, 2.0, 2.0]), np.zeros(8), np.zeros((8, 4, 4), np.int32),
-                          np.zeros((1, 2)), 3.0, 12, 3, np.zeros((1, 6, 6)), np.zeros(1))
+                          np.zeros(2, np.int64), np.zeros((1, 2)), 3.0, 12, 3, np.zeros((1, 6, 6)), np.zeros(1))
     nearest_views_kernel(R, t, np.eye(3), np.zeros(3), np.zeros(1, np.int64))
     connected_labels(2, np.zeros(1, np.int64), np.ones(1, np.int64))
     gradient = np.ones((4, 4), np.float32)
@@ -669,16 +669,17 @@ def undistort_point(u: float, v: float, intrinsics: np.ndarray, distortion: np.n
 def align_on_edges_kernel(R: np.ndarray, t: np.ndarray, radii: np.ndarray, view_directions: np.ndarray,
                           model_center: np.ndarray, seg_offsets: np.ndarray, seg_3d: np.ndarray,
                           seg_weights: np.ndarray, intrinsics: np.ndarray, distortion: np.ndarray,
-                          labels: np.ndarray, pixels: np.ndarray, spacing: float, min_points: int, iterations: int,
-                          normal_out: np.ndarray, variance_out: np.ndarray) -> None:
+                          labels: np.ndarray, origin: np.ndarray, pixels: np.ndarray, spacing: float,
+                          min_points: int, iterations: int, normal_out: np.ndarray, variance_out: np.ndarray) -> None:
     """``refinement.align_on_edges`` of poses R (B, 3, 3), t (B, 3), in place: per pose
     and pairing k with ``radii[b, k]`` > 0, the visible segments of the nearest view
     projected (``project_point``), a point every ``spacing`` pixels along each, paired with the
-    nearest like-oriented edge pixel (``labels`` (BINS, H, W) rows of ``pixels`` (L, 2),
-    ``EdgeEvidence.nearest_like``) within the radius, the line through that pixel along the
-    model edge (``undistort_point``), then ``iterations`` Gauss-Newton steps with Huber at
-    half the radius, each pair weighted by its segment's ``seg_weights``. A pose behind the
-    camera, or pairing fewer than ``min_points``, stops for good. normal_out (B, 6, 6) and
+    nearest like-oriented edge pixel (``labels`` (BINS, rows, cols) from ``origin``, rows of
+    ``pixels`` (L, 2), ``EdgeEvidence.nearest_like``, reaching every radius) within the
+    radius, the line through that pixel along the model edge (``undistort_point``), then
+    ``iterations`` Gauss-Newton steps with Huber at half the radius, each pair weighted by
+    its segment's ``seg_weights``. A pose behind the camera, or pairing fewer than
+    ``min_points``, stops for good. normal_out (B, 6, 6) and
     variance_out (B,) as ``refine_poses_kernel``'s. One call per chunk of poses, GIL
     released: as numpy it was some thirty array steps per pairing, holding the GIL.
     """
@@ -724,7 +725,7 @@ def align_on_edges_kernel(R: np.ndarray, t: np.ndarray, radii: np.ndarray, view_
                                      R[b, 1, 0] * qx + R[b, 1, 1] * qy + R[b, 1, 2] * qz + t[b, 1],
                                      R[b, 2, 0] * qx + R[b, 2, 1] * qy + R[b, 2, 2] * qz + t[b, 2], intrinsics,
                                      distortion)
-                    near, ex, ey = nearest_like_edge(labels, pixels, direction, u, v, radius)
+                    near, ex, ey = nearest_like_edge(labels, origin, pixels, direction, u, v, radius)
                     if not near:
                         continue
                     points[found, 0], points[found, 1], points[found, 2] = qx, qy, qz
@@ -745,14 +746,15 @@ def align_on_edges_kernel(R: np.ndarray, t: np.ndarray, radii: np.ndarray, view_
 
 
 @njit(nogil=True, cache=True)
-def nearest_like_edge(labels: np.ndarray, pixels: np.ndarray, direction: int, u: float, v: float,
-                      radius: float) -> tuple[bool, float, float]:
+def nearest_like_edge(labels: np.ndarray, origin: np.ndarray, pixels: np.ndarray, direction: int, u: float,
+                      v: float, radius: float) -> tuple[bool, float, float]:
     """For a point (u, v), pixels, on a model edge of direction bin ``direction``: whether
-    the nearest edge pixel that runs alike (``EdgeEvidence.nearest_like``'s ``labels``
-    rows of ``pixels``) lies within ``radius``, and where. An edge pixel of another
-    direction nearer to the point does not hide it: a pose 10 degrees off sits among the
-    part's crossing edges."""
-    col, row = int(np.rint(u)), int(np.rint(v))
+    the nearest edge pixel that runs alike (``EdgeEvidence.nearest_like``'s ``labels`` from
+    ``origin``, rows of ``pixels``) lies within ``radius``, and where. An edge pixel of
+    another direction nearer to the point does not hide it: a pose 10 degrees off sits
+    among the part's crossing edges. A point outside the labels' window (within the image)
+    has none within their reach, which the radius does not exceed."""
+    col, row = int(np.rint(u)) - origin[1], int(np.rint(v)) - origin[0]
     if not (0 <= col < labels.shape[2] and 0 <= row < labels.shape[1]):
         return False, 0.0, 0.0
     edge = labels[direction, row, col]

@@ -216,7 +216,8 @@ def align_on_edges(R: np.ndarray, t: np.ndarray, graph: AspectGraph, frame: Fram
     ``covariance_out`` (B, 6, 6) receives each pose's covariance of its last step
     (``refine_poses``).
     """
-    camera, (labels, pixels) = frame.camera, frame.evidence.nearest_like()
+    radii = np.ascontiguousarray(radii, dtype=float)
+    camera, nearest = frame.camera, frame.evidence.nearest_like(float(radii.max(initial=0.0)))
     R, t = np.array(R, dtype=float), np.array(t, dtype=float)
     # the 8 coefficients of the rational model, or none for a camera without distortion: the
     # kernel's projections then skip them at once instead of testing 8 zeros at every point
@@ -225,10 +226,10 @@ def align_on_edges(R: np.ndarray, t: np.ndarray, graph: AspectGraph, frame: Fram
     if camera.has_distortion:
         distortion[:len(camera.dist_coeffs)] = camera.dist_coeffs
     normal, variance = np.zeros((len(R), 6, 6)), np.full(len(R), np.nan)
-    align_on_edges_kernel(R, t, np.ascontiguousarray(radii, dtype=float), graph.view_directions, graph.model_center,
-                          graph.seg_offsets, graph.seg_3d, EDGE_KIND_WEIGHTS[graph.seg_kind],
-                          np.array([camera.fx, camera.fy, camera.cx, camera.cy]), distortion, labels, pixels,
-                          EDGE_SPACING_PIXELS, MIN_EDGE_POINTS, EDGE_ITERATIONS, normal, variance)
+    align_on_edges_kernel(R, t, radii, graph.view_directions, graph.model_center, graph.seg_offsets, graph.seg_3d,
+                          EDGE_KIND_WEIGHTS[graph.seg_kind], np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
+                          distortion, *nearest, EDGE_SPACING_PIXELS, MIN_EDGE_POINTS, EDGE_ITERATIONS, normal,
+                          variance)
     if covariance_out is not None:
         _covariances(normal, variance, covariance_out)
     return R, t
@@ -315,6 +316,10 @@ class PoseRefiner:
         ``ALIGN_MIN_GAIN`` higher: the alignment brings far starts in, but it can settle a
         near start at the wrong depth where the line rounds alone would not (the sharp
         bracket's clutter image 4: 8 mm deep, docs/results/refinement.md). New arrays."""
+        # the alignment's first radii reach a fifth of a pose's size and more: the whole image's
+        # nearest-edge table (Frame.detect's reaches the polish), built here over the pool's
+        # threads rather than by the first chunk to need it while the others wait
+        frame.evidence.nearest_like(pool=pool)
         stages = [lambda R_s, t_s: self.align(R_s, t_s, frame, p)] + self._line_stages(frame, p, rounds)
         R_a, t_a, aligned, _ = self._staged(R, t, frame, p, stages, pool, start)
         better = aligned > scores + ALIGN_MIN_GAIN

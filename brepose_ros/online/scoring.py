@@ -7,6 +7,7 @@ steps of the view climb, the polish, the twin check, and the found / not-found d
 """
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 from functools import cached_property, lru_cache, partial
@@ -22,6 +23,7 @@ from ..params import EstimatorParams, PoseParams
 from .kernels import pose_evidence_kernel, run_on_kernel
 from .kernels import grown_outline
 from .lines2d import nearest_lines, samples_along
+from .workers import SERIAL, WorkerPool
 
 if TYPE_CHECKING:
     from .frame import Frame
@@ -199,6 +201,18 @@ class LookUpMaps(NamedTuple):
         return self.near[0][bins, y, x] != 0, self.chance[0][bins, y, x]
 
 
+class NearestEdges(NamedTuple):
+    """``EdgeEvidence.nearest_like``: per direction bin and pixel of a window of the image,
+    the nearest like edge pixel, as ``labels`` (BINS, rows, cols) int32, rows of ``table``
+    (L, 2) float, its x, y (row 0 lies far outside the image, for a bin without pixels);
+    the window's first row and column in the image are ``origin`` (2,) int64. The order of
+    ``kernels.nearest_like_edge``'s first arguments."""
+
+    labels: np.ndarray
+    origin: np.ndarray
+    table: np.ndarray
+
+
 class EdgeEvidence:
     """What the image says about edges, prepared once per image for scoring poses.
 
@@ -280,6 +294,10 @@ class EdgeEvidence:
     #: at least RUN_ON_MIN_LENGTH long (shorter ones are pieces of curves, their ends joined)
     RUN_ON_PROBE = (0.25, 6.0, 30.0)
     RUN_ON_MIN_LENGTH = 10.0
+    #: ``nearest_like`` builds the whole image's labels when the window it needs covers more
+    #: than this share of it: an image with edges that spread (clutter, occlusion) aligns its
+    #: hypotheses from wide radii, which need all of it, and would build a large window twice
+    WHOLE_LABELS_SHARE = 0.5
     #: the score is multiplied by 1 - RUN_ON_WEIGHT x run-on: on the tuning parts right poses
     #: show a run-on of at most 0.12 (99 % below 0.08), wrong poses too far a median of 0.2
     #: (docs/results/verification.md)
@@ -307,7 +325,8 @@ class EdgeEvidence:
         for step in (-1, 0, 1):
             self.like_edges[(self._bins + step) % self.BINS, rows, cols] = 1
         self._maps: dict[tuple[float, ...], LookUpMaps] = {}  # tolerances -> maps()
-        self._nearest_like: tuple[np.ndarray, np.ndarray] | None = None  # nearest_like(), built on first use
+        self._nearest_like: NearestEdges | None = None  # nearest_like(), built on first use
+        self._nearest_reach = 0.0  # the reach of _nearest_like's window
         self._nearest_lock = threading.Lock()  # the refinement's threads share one image's evidence
         self._filling: tuple = ()  # the maps and the nearest-edge labels bin_jobs' jobs fill
 
@@ -316,29 +335,30 @@ class EdgeEvidence:
         ``maps`` at ``tolerances``: OpenCV calls, which release the GIL, so that the bins run
         on several threads (``Frame.detect``). The maps are filled in place, the table's
         pieces returned: hand them to ``adopt`` once every job ran, before any other use of
-        the evidence. The same maps as built on first use."""
+        the evidence. The same maps as built on first use; the table reaches the widest of
+        ``tolerances`` (the polish pairs within the look-up tolerance), the whole image without
+        them."""
         # left unset here, each bin's job setting all of its own: zeroing the maps (about 35 MB
         # at two tolerances on a whole 640 x 480 image) cost the calling thread 1.5-2 ms an image
-        self._filling = (self._unset_maps(tuple(tolerances)), np.empty((self.BINS,) + self.shape, np.int32))
-        return [partial(self._fill_bin, b, *self._filling) for b in range(self.BINS)]
+        reach = max(tolerances, default=math.inf)
+        self._filling = (self._unset_maps(tuple(tolerances)), *self._unset_labels(reach))
+        return [partial(self._fill_bin, b, *self._filling[:3]) for b in range(self.BINS)]
 
     def adopt(self, nearest_pieces: list[np.ndarray | None]) -> None:
         """Keep the maps ``bin_jobs`` filled and the nearest-edge table of its jobs' results."""
-        maps, labels = self._filling
+        maps, labels, origin, reach = self._filling
         with self._nearest_lock:
-            self._nearest_like = labels, self._nearest_table(nearest_pieces)
+            self._nearest_like = NearestEdges(labels, origin, self._nearest_table(nearest_pieces))
+            self._nearest_reach = reach
         if maps.tolerances:
             self._maps[maps.tolerances] = maps
 
-    def _fill_bin(self, b: int, maps: "LookUpMaps", labels: np.ndarray) -> np.ndarray | None:
-        """Direction bin ``b``'s rows of the ``maps`` and of the nearest-edge ``labels``, every
-        element (``bin_jobs`` leaves them unset; a bin without pixels labelled 0); its piece
-        of the table (``_nearest_bin``)."""
+    def _fill_bin(self, b: int, maps: "LookUpMaps", labels: np.ndarray, origin: np.ndarray) -> np.ndarray | None:
+        """Direction bin ``b``'s rows of the ``maps`` and of the nearest-edge ``labels`` (from
+        ``origin``), every element (``bin_jobs`` leaves them unset); its piece of the table
+        (``_nearest_bin``)."""
         self._fill_maps(b, maps)
-        table = self._nearest_bin(b, labels)
-        if table is None:
-            labels[b] = 0
-        return table
+        return self._nearest_bin(b, labels, origin)
 
     def orientation_bin(self, segments: np.ndarray) -> np.ndarray:
         return self._bins_of(segments[:, 1] - segments[:, 0])
@@ -440,30 +460,63 @@ class EdgeEvidence:
             cv2.dilate(like, chamfer_ball(tolerance), dst=near)
             self._boxed(near, maps.chance[i, b, y0:y1, x0:x1])
 
-    def nearest_like(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per direction bin and pixel, the nearest pixel of ``like_edges``: (BINS, H, W)
-        int32 rows of the (L, 2) float pixel table (x, y; row 0 lies far outside the image,
-        for a bin without pixels). One distance transform with labels per bin, built on
-        first use, once per image (about 3 ms a bin at 640 x 480)."""
+    def nearest_like(self, reach: float = math.inf, pool: WorkerPool = SERIAL) -> "NearestEdges":
+        """Per direction bin and pixel within ``reach`` of an edge pixel, the nearest pixel of
+        ``like_edges`` (``NearestEdges``): one distance transform with labels per bin (about
+        3 ms a bin at 640 x 480) over a window of the image, the bins on the ``pool``'s
+        threads. Built on first use (``bin_jobs`` builds it with the image's maps), and
+        again over a wider window when asked for a wider ``reach`` than it has.
+
+        Over the edge pixels' box, grown, the labels are the whole image's to the bit:
+        OpenCV's two passes take a pixel's label from the first of its neighbours, in a fixed
+        order, that ends its cheapest path; the cheapest paths from every edge pixel run
+        monotone in x and y, within the box of their ends (a path with steps in opposite
+        directions costs more in the 5x5 chamfer's integer weights, 65,536 / 91,750 /
+        143,976), so none leaves the window, and a candidate from outside it always costs more
+        than the cheapest from inside. Beyond the window, more than ``reach`` from every edge
+        pixel, ``kernels.nearest_like_edge`` finds no edge pixel within its radius (at most
+        the reach) either way."""
         with self._nearest_lock:
-            if self._nearest_like is None:
-                labels = np.zeros((self.BINS,) + self.shape, np.int32)
-                tables = [self._nearest_bin(b, labels) for b in range(self.BINS)]
-                self._nearest_like = labels, self._nearest_table(tables)
+            if self._nearest_like is None or self._nearest_reach < reach:
+                labels, origin, covered = self._unset_labels(reach)
+                pieces = pool.map(lambda b: self._nearest_bin(b, labels, origin), range(self.BINS))
+                self._nearest_like = NearestEdges(labels, origin, self._nearest_table(pieces))
+                self._nearest_reach = covered
             return self._nearest_like
 
-    def _nearest_bin(self, b: int, labels: np.ndarray) -> np.ndarray | None:
-        """Bin ``b``'s labels written into ``labels[b]`` (int32), as rows of the whole table
-        (``_nearest_table``), and its own label -> (x, y) table; None without pixels
-        (``labels[b]`` left as it was)."""
+    def _unset_labels(self, reach: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """``nearest_like``'s labels (BINS, rows, cols) int32, left unset, over the edge
+        pixels' box grown by ``reach`` and a pixel more (points rounded onto its pixels from
+        up to half a pixel outside), their window's first row and column (``origin``), and
+        the reach they cover: the whole image's (reach infinite) when that box covers more
+        than ``WHOLE_LABELS_SHARE`` of the image. An image without edge pixels has none."""
+        h, w = self.shape
+        if not len(self.pixels):
+            return np.empty((self.BINS, 0, 0), np.int32), np.zeros(2, np.int64), math.inf
+        top, left, bottom, right = 0, 0, h, w
+        if math.isfinite(reach):
+            margin = int(math.ceil(reach)) + 1
+            (x_lo, y_lo), (x_hi, y_hi) = self.pixels.min(axis=0), self.pixels.max(axis=0)
+            top, left = max(y_lo - margin, 0), max(x_lo - margin, 0)
+            bottom, right = min(y_hi + margin + 1, h), min(x_hi + margin + 1, w)
+        if (bottom - top) * (right - left) > self.WHOLE_LABELS_SHARE * h * w:
+            top, left, bottom, right, reach = 0, 0, h, w, math.inf
+        return np.empty((self.BINS, bottom - top, right - left), np.int32), np.array([top, left], np.int64), reach
+
+    def _nearest_bin(self, b: int, labels: np.ndarray, origin: np.ndarray) -> np.ndarray | None:
+        """Bin ``b``'s labels written into ``labels[b]`` (int32, its window from ``origin``),
+        as rows of the whole table (``_nearest_table``), and its own label -> (x, y) table;
+        None without pixels (``labels[b]`` 0: the far row)."""
         # the bin's like pixels in row-major order, as OpenCV numbers them 1, 2, ... (a scan of
-        # the whole map by np.nonzero held the GIL 0.75 ms a bin)
+        # the whole map by np.nonzero held the GIL 0.75 ms a bin); all lie in the window
         like = self.pixels[(self._bins - b + 1) % self.BINS <= 2]
         if not len(like):
+            labels[b] = 0
             return None
+        (top, left), (rows, cols) = origin, labels.shape[1:]
         # written in place: an array per bin, alive until the offsets are known, cost more in page faults
-        cv2.distanceTransformWithLabels(1 - self.like_edges[b], cv2.DIST_L2, 5, labels=labels[b],
-                                        labelType=cv2.DIST_LABEL_PIXEL)
+        cv2.distanceTransformWithLabels(1 - self.like_edges[b, top:top + rows, left:left + cols], cv2.DIST_L2, 5,
+                                        labels=labels[b], labelType=cv2.DIST_LABEL_PIXEL)
         labels[b] += self._table_starts[b]  # here, on the bin's thread, not after every bin ran
         table = np.zeros((len(like) + 1, 2))  # label -> (x, y) of its pixel; label 0: none
         table[1:] = like
