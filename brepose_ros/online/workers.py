@@ -46,7 +46,7 @@ RETAINED_MB = 256
 def keep_freed_memory() -> bool:
     """Ask glibc's malloc to keep the memory of an image's freed maps for the next image.
 
-    Every image builds 15-35 MB of evidence maps (``scoring.EdgeEvidence.bin_jobs``); by
+    An image builds up to 15-35 MB of evidence maps (``scoring.EdgeEvidence.bin_jobs``); by
     default glibc maps each such array afresh and unmaps it when freed, so the next image's
     pages fault in one by one, under a lock the worker threads share: 8-10 ms of a clean
     image on two threads (docs/results/latency.md). Process-wide and idempotent; at most
