@@ -214,6 +214,50 @@ def test_a_turn_about_a_continuous_axis_off_the_origin_costs_nothing():
     assert pose_errors(tilted, t_est, R, t, model, graph).rotation_sym_deg == pytest.approx(4, abs=1e-6)
 
 
+def test_a_nearly_rotational_part_is_checked_against_its_end_over_end_twins():
+    """``end_over_end``: a shaft of radius 10 and length 70 mm whose axis is a near continuous
+    symmetry through a point off the origin (a flat or a chamfer at one end breaks it). Seen
+    from the side, each of the two twins turns the part half round about an axis across its
+    own, through that point: the point projects where it did, each end's ring is drawn on the
+    other's (the outline of a body of revolution, to 0.05 px), and what was at one end (the
+    chamfer) is now at the other. One turns about the axis square to the line of sight. Seen
+    along the axis, or with the axis an exact symmetry (a plain cylinder), there is no twin."""
+    from brepose_ros.camera import Camera
+    from brepose_ros.online.symmetry import end_over_end
+
+    point, axis = np.array([0.002, -0.001, 0.003]), np.array([0.0, 0.0, 1.0])
+
+    def ring(n):
+        return np.array([[10 * np.cos(a), 10 * np.sin(a), 0.0] for a in np.linspace(0, 2 * np.pi, n)]) / 1000
+
+    ends = [ring(73) + point + [0, 0, z] for z in (-0.035, 0.035)]
+    dense = [ring(7201) + point + [0, 0, z] for z in (-0.035, 0.035)]  # the rings as curves, to 0.01 mm
+    graph = graph_with(symmetry_axes=np.array([[point, axis]]), symmetry_axis_shares=np.array([0.63]))
+    camera = Camera(fx=600.0, fy=600.0, cx=320.0, cy=240.0, width=640, height=480)
+    R, t = look_at_rotation(np.array([1.0, 0.4, -0.3])), np.array([0.01, -0.005, 0.25])
+    R_twins, t_twins = end_over_end(graph, R, t)
+    assert len(R_twins) == 2
+    sight = R.T @ (R @ graph.model_center + t)
+    for R_twin, t_twin in zip(R_twins, t_twins):
+        assert rotation_angle_deg(R_twin, R) == pytest.approx(180.0)
+        turn_axis = np.linalg.eigh(R.T @ R_twin + R_twin.T @ R)[1][:, -1]  # the half turn's axis, model frame
+        assert abs(turn_axis @ axis) < 1e-9
+        assert np.allclose(R_twin @ point + t_twin, R @ point + t)
+        shown = [camera.project_model(ring_points, R_twin, t_twin) for ring_points in ends]
+        seen = [camera.project_model(ring_points, R, t) for ring_points in dense]
+        for end, other in ((0, 1), (1, 0)):  # each end's ring drawn on the other's
+            gaps = np.linalg.norm(shown[end][:, None] - seen[other][None], axis=2).min(axis=1)
+            assert gaps.max() < 0.05
+        # the chamfer's centre now where the other end's is
+        assert np.allclose(R_twin @ (point + [0, 0, 0.035]) + t_twin, R @ (point - [0, 0, 0.035]) + t)
+    across = [np.linalg.eigh(R.T @ R_k + R_k.T @ R)[1][:, -1] for R_k in R_twins]
+    assert min(abs(across[0] @ sight), abs(across[1] @ sight)) < 1e-9 * np.linalg.norm(sight)
+    along = look_at_rotation(-axis)  # the camera looks down the axis at the part's centre
+    assert len(end_over_end(graph, along, np.array([0.0, 0.0, 0.25]))[0]) == 0
+    exact = graph_with(symmetry_axes=np.array([[point, axis]]), symmetry_axis_shares=np.ones(1))
+    assert len(end_over_end(exact, R, t)[0]) == 0
+
+
 # ----------------------------------------------------------------------------- run time
 
 @pytest.fixture(scope="module")

@@ -2,9 +2,10 @@
 
 A near-symmetric part (``offline.symmetry``) looks almost the same in a pose and in its twin,
 the pose turned by the symmetry: the score of both is high, and the estimator may settle on
-either. Here each twin of the final pose (``AspectGraph.symmetric_poses``) is refined,
-climbed and polished on the image like the pose was, and the two are compared on the only
-edges that tell them apart: the projected model edges of each that lie farther than
+either. Here each twin of the final pose (``AspectGraph.symmetric_poses``, and for a nearly
+rotational part its end-over-end turns, ``end_over_end``) is refined, climbed and polished
+on the image like the pose was, and the two are compared on the only edges that tell them
+apart: the projected model edges of each that lie farther than
 ``DISTINCT_REACH`` inlier distances from every projected edge of the other (a hole on one
 side, a chamfer, a tab). The share of those edges that like image edges confirm beyond
 chance, counted as the score counts it (the local density of like edges is what chance
@@ -31,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..aspect_graph import AspectGraph
-from ..geometry import rotation_angle_deg
+from ..geometry import rotation_about, rotation_angle_deg
 from ..params import PoseParams
 from .frame import Frame
 from .larger import projected_place
@@ -72,13 +73,14 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
                 p: PoseParams, pool: WorkerPool = SERIAL) -> tuple[Candidate, float | None]:
     """The pose (``best`` or one of its twins) with the most evidence on the edges that tell
     them apart, and its margin over its strongest rival (module doc); margin None when the
-    part has no near symmetry, 1 when no twin holds on the image (each refines back onto
-    the pose or scores below ``pose.min_score``). The twins climb and polish on the
-    ``pool``'s threads, in step, each as it would alone."""
+    part has no near symmetry nor a near continuous axis (``end_over_end``), 1 when no twin
+    holds on the image (each refines back onto the pose or scores below ``pose.min_score``).
+    The twins climb and polish on the ``pool``'s threads, in step, each as it would alone."""
     near = np.nonzero(~graph.exact_symmetries)[0]
-    if len(near) == 0:
+    flips = end_over_end(graph, best.R, best.t)
+    if len(near) == 0 and len(flips[0]) == 0:
         return best, None
-    R, t = graph.symmetric_poses(best.R, best.t, near)
+    R, t = (np.concatenate(pair) for pair in zip(graph.symmetric_poses(best.R, best.t, near), flips))
     R, t = refiner.refine(R, t, frame, p, CLIMB_ROUNDS)
     # climbed over neighbouring views like the pose was: a near symmetry's twin starts a
     # few degrees off, and a twin left in a worse optimum would lose for that alone
@@ -86,6 +88,30 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
               for R_k, t_k, score in zip(R, t, pose_scores(graph, R, t, frame, p))]
     twins = refiner.polished(refiner.climb_together(starts, frame, p, pool, each_alone=True), frame, p, pool)
     return pick_by_evidence(best, twins, graph, frame, p)
+
+
+def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The twins (K, 3, 3), (K, 3) of pose R, t turned end over end about each near (not
+    exact) continuous axis of the part: half turns about the two axes across it through its
+    point, one square to the line of sight and one nearest it. A nearly rotational part
+    (a shaft with a flat, a screw) shows almost the same outline turned so (the silhouette of
+    a body of revolution is symmetric about its axis's middle), and its stored near
+    symmetries are turns about the axis, which do not reach that twin; the axes across are
+    chosen per pose because which of them keeps the outline depends on where it is seen from."""
+    near_axes = graph.symmetry_axes[~graph.exact_axes]
+    R_twins, t_twins = [], []
+    sight = R.T @ (R @ graph.model_center + t)  # camera to the part's centre, in the model frame
+    for point, axis in near_axes:
+        across = np.cross(axis, sight)
+        if np.linalg.norm(across) < 1e-9 * np.linalg.norm(sight):
+            continue  # seen along the axis: the outline is a circle, no end is in view
+        across /= np.linalg.norm(across)
+        for u in (across, np.cross(axis, across)):
+            S = rotation_about(u, np.pi)
+            R_twin = R @ S.T  # the model turned by S about the line through ``point``
+            R_twins.append(R_twin)
+            t_twins.append(t - R_twin @ (point - S @ point))
+    return np.array(R_twins).reshape(-1, 3, 3), np.array(t_twins).reshape(-1, 3)
 
 
 def check_rivals(finalists: list[Candidate], graph: AspectGraph, frame: Frame, p: PoseParams) -> Candidate:
