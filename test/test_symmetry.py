@@ -217,13 +217,14 @@ def test_a_turn_about_a_continuous_axis_off_the_origin_costs_nothing():
 def test_a_nearly_rotational_part_is_checked_against_its_end_over_end_twins():
     """``end_over_end``: a shaft of radius 10 and length 70 mm whose axis is a near continuous
     symmetry through a point off the origin (a flat or a chamfer at one end breaks it). Seen
-    from the side, each of the two twins turns the part half round about an axis across its
-    own, through that point: the point projects where it did, each end's ring is drawn on the
-    other's (the outline of a body of revolution, to 0.05 px), and what was at one end (the
-    chamfer) is now at the other. One turns about the axis square to the line of sight. Seen
-    along the axis, or with the axis an exact symmetry (a plain cylinder), there is no twin."""
+    from the side, each twin turns the part half round about an axis across its own, through
+    that point: the point projects where it did, each end's ring is drawn on the other's (the
+    outline of a body of revolution, to 0.05 px), and what was at one end (the chamfer) is now
+    at the other. The first turns about the axis square to the line of sight, the others every
+    180 / ``ACROSS_DIRECTIONS`` degrees on. Seen along the axis, or with the axis an exact
+    symmetry (a plain cylinder), there is no twin."""
     from brepose_ros.camera import Camera
-    from brepose_ros.online.symmetry import end_over_end
+    from brepose_ros.online.symmetry import ACROSS_DIRECTIONS, end_over_end
 
     point, axis = np.array([0.002, -0.001, 0.003]), np.array([0.0, 0.0, 1.0])
 
@@ -236,7 +237,7 @@ def test_a_nearly_rotational_part_is_checked_against_its_end_over_end_twins():
     camera = Camera(fx=600.0, fy=600.0, cx=320.0, cy=240.0, width=640, height=480)
     R, t = look_at_rotation(np.array([1.0, 0.4, -0.3])), np.array([0.01, -0.005, 0.25])
     R_twins, t_twins = end_over_end(graph, R, t)
-    assert len(R_twins) == 2
+    assert len(R_twins) == ACROSS_DIRECTIONS
     sight = R.T @ (R @ graph.model_center + t)
     for R_twin, t_twin in zip(R_twins, t_twins):
         assert rotation_angle_deg(R_twin, R) == pytest.approx(180.0)
@@ -250,8 +251,10 @@ def test_a_nearly_rotational_part_is_checked_against_its_end_over_end_twins():
             assert gaps.max() < 0.05
         # the chamfer's centre now where the other end's is
         assert np.allclose(R_twin @ (point + [0, 0, 0.035]) + t_twin, R @ (point - [0, 0, 0.035]) + t)
-    across = [np.linalg.eigh(R.T @ R_k + R_k.T @ R)[1][:, -1] for R_k in R_twins]
-    assert min(abs(across[0] @ sight), abs(across[1] @ sight)) < 1e-9 * np.linalg.norm(sight)
+    across = np.array([np.linalg.eigh(R.T @ R_k + R_k.T @ R)[1][:, -1] for R_k in R_twins])
+    assert abs(across[0] @ sight) < 1e-9 * np.linalg.norm(sight)  # square to the line of sight
+    steps = np.degrees(np.arccos(np.clip(np.abs(np.sum(across[1:] * across[:-1], axis=1)), 0, 1)))
+    assert steps == pytest.approx(np.full(ACROSS_DIRECTIONS - 1, 180.0 / ACROSS_DIRECTIONS), abs=1e-6)
     along = look_at_rotation(-axis)  # the camera looks down the axis at the part's centre
     assert len(end_over_end(graph, along, np.array([0.0, 0.0, 0.25]))[0]) == 0
     exact = graph_with(symmetry_axes=np.array([[point, axis]]), symmetry_axis_shares=np.ones(1))
@@ -259,6 +262,36 @@ def test_a_nearly_rotational_part_is_checked_against_its_end_over_end_twins():
 
 
 # ----------------------------------------------------------------------------- run time
+
+def test_a_pose_that_loses_on_evidence_to_one_twin_does_not_win_on_noise_over_another(monkeypatch):
+    """``pick_by_evidence``: the pose (a few degrees off) shows clearly less than twin A on
+    the edges that tell them apart; A and twin B tie there, and the pose and B cannot be told
+    apart (B scores 0.005 below the pose). The pose stands down, and of A and B the better
+    whole score, B, is kept, as ambiguous: the pose's lead of pixel noise over B must not let
+    A win (the notched plate's clutter 6 on the bench)."""
+    from brepose_ros.online import symmetry
+    from brepose_ros.online.refinement import Candidate
+    from brepose_ros.params import PoseParams
+
+    R = look_at_rotation(np.array([0.3, -0.2, -1.0]))
+    pose = Candidate(0.719, R, np.array([0.0, 0.0, 0.4]), None)
+    twin_a = Candidate(0.668, R @ rotation_about(np.array([1.0, 0.0, 0.0]), np.pi), pose.t, None)
+    twin_b = Candidate(0.714, R @ rotation_about(np.array([0.0, 1.0, 0.0]), np.pi), pose.t, None)
+    evidence = {(0.719, 0.668): (0.425, True), (0.719, 0.714): (-0.005, False), (0.668, 0.714): (0.0, True)}
+    monkeypatch.setattr(symmetry, "twin_evidence", lambda graph, a, b, frame, p: evidence[(a.score, b.score)])
+    kept, margin = symmetry.pick_by_evidence(pose, [twin_a, twin_b], graph_with(), None, PoseParams())
+    assert kept is twin_b and margin == 0.0
+    # where A also shows more than B, A is kept, its smallest gain the margin
+    evidence[(0.668, 0.714)] = (-0.3, True)
+    kept, margin = symmetry.pick_by_evidence(pose, [twin_a, twin_b], graph_with(), None, PoseParams())
+    assert kept is twin_a and margin == pytest.approx(0.3)
+    # where the image tells none apart, a rival displaces the pose only by a clear whole score
+    evidence.update({key: (0.0, False) for key in evidence})
+    assert symmetry.pick_by_evidence(pose, [twin_a, twin_b], graph_with(), None, PoseParams())[0] is pose
+    higher = Candidate(0.719 + 2.5 * symmetry.MIN_GAIN, twin_b.R, twin_b.t, None)
+    evidence[(0.719, higher.score)] = (0.0, False)
+    evidence[(0.668, higher.score)] = (0.0, False)
+    assert symmetry.pick_by_evidence(pose, [twin_a, higher], graph_with(), None, PoseParams())[0] is higher
 
 @pytest.fixture(scope="module")
 def plate_graph(builtin_step):

@@ -17,8 +17,13 @@ The pose with more evidence is kept, and the difference of the two shares is its
 (0 to 1): near 0 the image cannot decide (the feature is hidden, or absent from both), and
 the estimate says so (``Estimate.ambiguous``). Where the feature is too small at this
 distance to leave ``MIN_DISTINCT_PIXELS`` of distinguishing edge, the difference of the
-whole scores chooses, and the margin is 0: a guess is no evidence. Exact symmetries need
-no check: their twins are the same pose of the part.
+whole scores chooses, and the margin is 0: a guess is no evidence. With several twins, a
+pose that another shows less of stands down, and the best whole score among those left
+wins. Exact symmetries need no check: their twins are the same pose of the part.
+
+A twin that wins is checked once more against its own twins: the pose entering the check
+may sit a few degrees off (its distinguishing edges then confirm little), while its twins
+were refined onto the image; the winner's twins bring the pose's side back as well fitted.
 
 The same comparison decides between the refinement's finalists (``check_rivals``): the
 best few distinct poses, climbed and polished, of which a wrong one may score a little
@@ -37,7 +42,8 @@ from ..params import PoseParams
 from .frame import Frame
 from .larger import projected_place
 from .lines2d import point_segment_distance, samples_along
-from .refinement import CLIMB_ROUNDS, SAME_POSE_DEG, SAME_POSE_DIAMETERS, Candidate, PoseRefiner
+from .refinement import (CLIMB_ROUNDS, SAME_POSE_DEG, SAME_POSE_DIAMETERS, Candidate, PoseRefiner,
+                         hypothesis_rounds)
 from .scoring import pose_scores
 from .workers import SERIAL, WorkerPool
 
@@ -51,11 +57,14 @@ PIECE_PIXELS = 2.0
 #: (the notched plate's 8 x 6 mm notch at 2.5 px/mm leaves 0-20)
 MIN_DISTINCT_PIXELS = 10.0
 
-#: a rival replaces the pose only when its margin beats the pose's by more than this: where
-#: the distinguishing feature shows too few pixels, the whole scores decide, and two poses
-#: that show nearly the same edges differ by pixel noise of up to 0.015 (the notched plate's
-#: truth and flip scored 0.681 and 0.696), which the two margins count twice
-MIN_GAIN = 0.035
+#: one pose shows more than another on the edges that tell them apart only by more than this,
+#: and where those do not decide, a rival displaces the pose on the whole score only by more
+#: than twice this: two poses that show nearly the same edges differ by pixel noise of up to
+#: 0.015 (the notched plate's truth and flip scored 0.681 and 0.696)
+MIN_GAIN = 0.0175
+#: axes across a near continuous axis about which the end-over-end twins turn (every 15
+#: degrees: the refinement closes the rest; ``end_over_end``)
+ACROSS_DIRECTIONS = 12
 
 #: a finalist of the refinement scoring at most this much below the best is compared with it
 #: on the edges that tell them apart (``check_rivals``): where a right finalist lost to a wrong
@@ -70,34 +79,55 @@ RIVAL_PLACE = 0.5
 
 
 def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame: Frame,
-                p: PoseParams, pool: WorkerPool = SERIAL) -> tuple[Candidate, float | None]:
+                p: PoseParams, pool: WorkerPool = SERIAL, compared: list[Candidate] | None = None
+                ) -> tuple[Candidate, float | None]:
     """The pose (``best`` or one of its twins) with the most evidence on the edges that tell
     them apart, and its margin over its strongest rival (module doc); margin None when the
     part has no near symmetry nor a near continuous axis (``end_over_end``), 1 when no twin
     holds on the image (each refines back onto the pose or scores below ``pose.min_score``).
-    The twins climb and polish on the ``pool``'s threads, in step, each as it would alone."""
+    The twins climb and polish on the ``pool``'s threads, in step, each as it would alone.
+    When a twin wins, the check runs once more from it, its twins compared with all the poses
+    ``compared`` already: a pose a few degrees off is compared with twins refined from it onto
+    the image, so its own side is judged by its misfit; the winner's twins bring that side
+    back as well fitted as the winner, and a pose the image could not tell from the winner
+    still makes it ambiguous."""
     near = np.nonzero(~graph.exact_symmetries)[0]
-    flips = end_over_end(graph, best.R, best.t)
-    if len(near) == 0 and len(flips[0]) == 0:
+    R_flip, t_flip = end_over_end(graph, best.R, best.t)
+    if len(near) == 0 and len(R_flip) == 0:
         return best, None
-    R, t = (np.concatenate(pair) for pair in zip(graph.symmetric_poses(best.R, best.t, near), flips))
+    R, t = graph.symmetric_poses(best.R, best.t, near)
     R, t = refiner.refine(R, t, frame, p, CLIMB_ROUNDS)
-    # climbed over neighbouring views like the pose was: a near symmetry's twin starts a
-    # few degrees off, and a twin left in a worse optimum would lose for that alone
     starts = [Candidate(float(score), R_k, t_k, best.hypothesis)
               for R_k, t_k, score in zip(R, t, pose_scores(graph, R, t, frame, p))]
+    if len(R_flip):
+        # an end-over-end start lies up to half a direction step off, its roll and centre only
+        # near: refined as a hypothesis is, aligned on the edge pixels first (from the climb
+        # rounds alone the start nearest the shaft's truth scored below wrong ones), and the
+        # best of each axis's ``ACROSS_DIRECTIONS`` goes on
+        R_flip, t_flip, scores = refiner.refined_scores(R_flip, t_flip, frame, p,
+                                                        hypothesis_rounds(p.refine_iterations), pool, align=True)
+        for axis in range(len(R_flip) // ACROSS_DIRECTIONS):
+            k = axis * ACROSS_DIRECTIONS + int(np.argmax(scores[axis * ACROSS_DIRECTIONS:][:ACROSS_DIRECTIONS]))
+            starts.append(Candidate(float(scores[k]), R_flip[k], t_flip[k], best.hypothesis))
+    # climbed over neighbouring views like the pose was: a near symmetry's twin starts a
+    # few degrees off, and a twin left in a worse optimum would lose for that alone
     twins = refiner.polished(refiner.climb_together(starts, frame, p, pool, each_alone=True), frame, p, pool)
-    return pick_by_evidence(best, twins, graph, frame, p)
+    winner, margin = pick_by_evidence(best, twins + (compared or []), graph, frame, p)
+    if compared is None and winner is not best:
+        return check_twins(winner, graph, refiner, frame, p, pool, compared=[best] + twins)
+    return winner, margin
 
 
 def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The twins (K, 3, 3), (K, 3) of pose R, t turned end over end about each near (not
-    exact) continuous axis of the part: half turns about the two axes across it through its
-    point, one square to the line of sight and one nearest it. A nearly rotational part
-    (a shaft with a flat, a screw) shows almost the same outline turned so (the silhouette of
-    a body of revolution is symmetric about its axis's middle), and its stored near
-    symmetries are turns about the axis, which do not reach that twin; the axes across are
-    chosen per pose because which of them keeps the outline depends on where it is seen from."""
+    exact) continuous axis of the part: half turns about ``ACROSS_DIRECTIONS`` axes across it
+    through its point, evenly over a half circle from the one square to the line of sight
+    (the second quarter's first is the one nearest it). A nearly rotational part (a shaft with
+    a flat, a screw) shows almost the same outline turned so (the silhouette of a body of
+    revolution is symmetric about its axis's middle), and its stored near symmetries are turns
+    about the axis, which do not reach that twin. Which axis across maps the part's odd
+    features (a flat, a cross hole) onto the image is the roll about its axis, which the image
+    tells least: the pose's own roll may be off by any angle, so every direction is tried."""
     near_axes = graph.symmetry_axes[~graph.exact_axes]
     R_twins, t_twins = [], []
     sight = R.T @ (R @ graph.model_center + t)  # camera to the part's centre, in the model frame
@@ -106,8 +136,8 @@ def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> tuple[np.n
         if np.linalg.norm(across) < 1e-9 * np.linalg.norm(sight):
             continue  # seen along the axis: the outline is a circle, no end is in view
         across /= np.linalg.norm(across)
-        for u in (across, np.cross(axis, across)):
-            S = rotation_about(u, np.pi)
+        for angle in np.pi * np.arange(ACROSS_DIRECTIONS) / ACROSS_DIRECTIONS:
+            S = rotation_about(rotation_about(axis, angle) @ across, np.pi)
             R_twin = R @ S.T  # the model turned by S about the line through ``point``
             R_twins.append(R_twin)
             t_twins.append(t - R_twin @ (point - S @ point))
@@ -149,18 +179,33 @@ def pick_by_evidence(best: Candidate, twins: list[Candidate], graph: AspectGraph
     if not rivals:
         return best, 1.0  # no twin holds on this image
     # with several near symmetries the rivals are twins of each other too: each pose's margin
-    # is its smallest gain over any other, and the pose with the largest margin wins
+    # is its smallest gain over any other
     poses = [best] + rivals
     gains = np.zeros((len(poses), len(poses)))  # gains[i, j]: how much more pose j shows than pose i
     seen = np.ones((len(poses), len(poses)), bool)  # whether the image can tell poses i and j apart
     for i, j in zip(*np.triu_indices(len(poses), 1)):
         gains[i, j], seen[i, j] = twin_evidence(graph, poses[i], poses[j], frame, p)
         gains[j, i], seen[j, i] = -gains[i, j], seen[i, j]
+    # a pose stands unless another shows more of the edges that tell the two apart; among the
+    # standing ones the image does not decide, and the whole score does: a pose that loses on
+    # its evidence to one twin (it sits a few degrees off it) must not win over another by a
+    # whole score that differs by noise
+    beaten = ((gains > MIN_GAIN) & seen).any(axis=1)
+    standing = np.flatnonzero(~beaten)
     np.fill_diagonal(gains, np.inf)
     margins = gains.min(axis=0)
-    winner = int(np.argmax(margins))
-    if margins[winner] <= margins[0] + MIN_GAIN:
-        winner = 0  # a rival must beat the pose by more than noise
+    if len(standing) == 0:  # a cycle of gains: the pose with the largest smallest gain
+        winner = int(np.argmax(margins))
+        if margins[winner] <= margins[0] + 2 * MIN_GAIN:
+            winner = 0
+    else:
+        scores = np.array([c.score for c in poses])
+        winner = int(standing[np.argmax(scores[standing])])
+        if not beaten[0] and scores[winner] <= scores[0] + 2 * MIN_GAIN:
+            # the pose won on the whole score already: a rival the image does not tell from
+            # it displaces it only by more than both scores' noise (the screw's clutter 4 lost
+            # its right pose to a flip 0.018 above it)
+            winner = 0
     # where the distinguishing feature shows too little, the whole scores chose: no margin
     return poses[winner], float(max(margins[winner], 0.0)) if seen[:, winner].all() else 0.0
 
