@@ -102,13 +102,16 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     if len(R_flip):
         # an end-over-end start lies up to half a direction step off, its roll and centre only
         # near: refined as a hypothesis is, aligned on the edge pixels first (from the climb
-        # rounds alone the start nearest the shaft's truth scored below wrong ones), and the
-        # best of each axis's ``ACROSS_DIRECTIONS`` goes on
+        # rounds alone the start nearest the shaft's truth scored below wrong ones). Of each
+        # axis's ``ACROSS_DIRECTIONS`` the best goes on, and the two that keep the outline
+        # (square to the line of sight and nearest it): where the image cannot tell the ends
+        # apart, one of them says so
         R_flip, t_flip, scores = refiner.refined_scores(R_flip, t_flip, frame, p,
                                                         hypothesis_rounds(p.refine_iterations), pool, align=True)
-        for axis in range(len(R_flip) // ACROSS_DIRECTIONS):
-            k = axis * ACROSS_DIRECTIONS + int(np.argmax(scores[axis * ACROSS_DIRECTIONS:][:ACROSS_DIRECTIONS]))
-            starts.append(Candidate(float(scores[k]), R_flip[k], t_flip[k], best.hypothesis))
+        for first in range(0, len(R_flip), ACROSS_DIRECTIONS):
+            best_k = first + int(np.argmax(scores[first:first + ACROSS_DIRECTIONS]))
+            for k in sorted({best_k, first, first + ACROSS_DIRECTIONS // 2}):
+                starts.append(Candidate(float(scores[k]), R_flip[k], t_flip[k], best.hypothesis))
     # climbed over neighbouring views like the pose was: a near symmetry's twin starts a
     # few degrees off, and a twin left in a worse optimum would lose for that alone
     twins = refiner.polished(refiner.climb_together(starts, frame, p, pool, each_alone=True), frame, p, pool)
