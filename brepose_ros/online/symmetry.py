@@ -125,7 +125,7 @@ def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> tuple[np.n
     """The twins (K, 3, 3), (K, 3) of pose R, t turned end over end about each near (not
     exact) continuous axis of the part: half turns about ``ACROSS_DIRECTIONS`` axes across it
     through its point, evenly over a half circle from the one square to the line of sight
-    (the second quarter's first is the one nearest it). A nearly rotational part (a shaft with
+    (the ``ACROSS_DIRECTIONS // 2``-th is the one nearest it). A nearly rotational part (a shaft with
     a flat, a screw) shows almost the same outline turned so (the silhouette of a body of
     revolution is symmetric about its axis's middle), and its stored near symmetries are turns
     about the axis, which do not reach that twin. Which axis across maps the part's odd
