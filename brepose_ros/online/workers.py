@@ -55,9 +55,11 @@ def keep_freed_memory() -> bool:
         mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError):
         return False
-    return all(mallopt(option, value) == 1 for option, value in (
+    # every option set even where one is refused (a list, not all()'s short circuit)
+    accepted = [mallopt(option, value) == 1 for option, value in (
         (_M_MMAP_THRESHOLD, HEAP_ARRAYS_MB << 20), (_M_TRIM_THRESHOLD, RETAINED_MB << 20),
-        (_M_TOP_PAD, HEAP_ARRAYS_MB << 20)))
+        (_M_TOP_PAD, HEAP_ARRAYS_MB << 20))]
+    return all(accepted)
 
 
 class WorkerPool:
