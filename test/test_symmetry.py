@@ -293,6 +293,27 @@ def test_a_pose_that_loses_on_evidence_to_one_twin_does_not_win_on_noise_over_an
     evidence[(0.668, higher.score)] = (0.0, False)
     assert symmetry.pick_by_evidence(pose, [twin_a, higher], graph_with(), None, PoseParams())[0] is higher
 
+
+def test_a_twin_below_the_found_floor_still_makes_the_pose_ambiguous(monkeypatch):
+    """``pick_by_evidence``: a twin scoring under ``pose.min_score`` but from ``RIVAL_FLOOR`` on
+    is a rival (the confidence's twin features were recorded so); the image cannot tell it
+    from the pose, so the pose is kept with margin 0 (ambiguous). Below the rival floor a twin
+    is none: margin 1."""
+    from brepose_ros.online import symmetry
+    from brepose_ros.online.refinement import Candidate
+    from brepose_ros.params import PoseParams
+
+    p = PoseParams()
+    R = look_at_rotation(np.array([0.3, -0.2, -1.0]))
+    pose = Candidate(0.7, R, np.array([0.0, 0.0, 0.4]), None)
+    flip = R @ rotation_about(np.array([1.0, 0.0, 0.0]), np.pi)
+    monkeypatch.setattr(symmetry, "twin_evidence", lambda graph, a, b, frame, p: (0.0, False))
+    below_found = Candidate((symmetry.RIVAL_FLOOR + p.min_score) / 2, flip, pose.t, None)
+    assert symmetry.RIVAL_FLOOR < below_found.score < p.min_score
+    assert symmetry.pick_by_evidence(pose, [below_found], graph_with(), None, p) == (pose, 0.0)
+    below_rivals = Candidate(symmetry.RIVAL_FLOOR - 0.01, flip, pose.t, None)
+    assert symmetry.pick_by_evidence(pose, [below_rivals], graph_with(), None, p) == (pose, 1.0)
+
 @pytest.fixture(scope="module")
 def plate_graph(builtin_step):
     """The notched plate's graph at 15 degrees, and its STEP file."""

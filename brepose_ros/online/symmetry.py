@@ -66,6 +66,12 @@ MIN_GAIN = 0.0175
 #: degrees: the refinement closes the rest; ``end_over_end``)
 ACROSS_DIRECTIONS = 12
 
+#: a twin scoring this or more is a rival of the pose, whatever ``pose.min_score``: the
+#: confidence's twin features (``twin_margin``, ``ambiguous``) were recorded with rivals from
+#: this score on (bench/confidence.py's RECORD_FLOOR), and a twin a little below the found
+#: floor still shows that the image may hold the part turned so
+RIVAL_FLOOR = 0.3
+
 #: a finalist of the refinement scoring at most this much below the best is compared with it
 #: on the edges that tell them apart (``check_rivals``): where a right finalist lost to a wrong
 #: one on the bench's clean images, it was by 0.006-0.035 (4 images); a wider gap would let the
@@ -84,7 +90,7 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     """The pose (``best`` or one of its twins) with the most evidence on the edges that tell
     them apart, and its margin over its strongest rival (module doc); margin None when the
     part has no near symmetry nor a near continuous axis (``end_over_end``), 1 when no twin
-    holds on the image (each refines back onto the pose or scores below ``pose.min_score``).
+    holds on the image (each refines back onto the pose or scores below ``RIVAL_FLOOR``).
     The twins climb and polish on the ``pool``'s threads, in step, each as it would alone.
     When a twin wins, the check runs once more from it, its twins compared with all the poses
     ``compared`` already: a pose a few degrees off is compared with twins refined from it onto
@@ -173,11 +179,11 @@ def pick_by_evidence(best: Candidate, twins: list[Candidate], graph: AspectGraph
     """Of the pose and its refined ``twins``, the one with the most evidence on the edges
     that tell them apart, and its margin over its strongest rival (``check_twins``,
     ``check_rivals``; also bench/flips.py's generic alternates)."""
-    # a twin is a rival when it could be reported itself and did not refine back onto the pose
-    # (or onto another rival)
+    # a twin is a rival when it scores like a pose the image could hold and did not refine
+    # back onto the pose (or onto another rival)
     rivals: list[Candidate] = []
     for twin in twins:
-        if twin.score >= p.min_score and not any(same_pose(twin, c, graph.model_diameter) for c in [best] + rivals):
+        if twin.score >= RIVAL_FLOOR and not any(same_pose(twin, c, graph.model_diameter) for c in [best] + rivals):
             rivals.append(twin)
     if not rivals:
         return best, 1.0  # no twin holds on this image
