@@ -160,9 +160,9 @@ class PoseParams(Ranged):
         "a cell of the score's explained share also counts as seen where half its model length lies this near like "
         "edges beyond chance, pixels: a pose turned a few degrees off the part's features has their edges beside "
         "its own, an occluder hides them (bench: wrong poses reported 104 -> 91 of 480 images, right 191 -> 193, "
-        "docs/results/refinement.md). It costs another set of maps per image, 7-8 ms at 640 x 480 (a clean image "
-        "32-33 -> 40 ms with two workers, docs/results/latency.md); at most inlier_pixels turns it off, the score as "
-        "before", 6.0, 0.0, 20.0)
+        "docs/results/refinement.md). It costs another set of maps per image, about 2 ms of CPU on a clean image since "
+        "the maps cover the edge pixels' box only (docs/results/latency.md); at most inlier_pixels turns it off, the "
+        "score as before", 6.0, 0.0, 20.0)
     min_size_pixels: float = doc(
         "smallest diagonal of the projected part, pixels; smaller poses score 0", 40.0, 0.0, 10000.0)
     min_margin_pixels: float = doc(

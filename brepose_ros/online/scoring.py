@@ -379,7 +379,7 @@ class EdgeEvidence:
         pts = model_px[:, 0][seg_idx] + frac[:, None] * delta[seg_idx]
         weight = (lengths / counts)[seg_idx]
         x, y = np.clip(np.rint(pts).astype(int) + 1, 0, [w + 1, h + 1]).T
-        near = self._layer(tolerance_px).at(self._bins_of(delta)[seg_idx], x, y)[0]
+        near = self._holding((tolerance_px,))[0].at(self._bins_of(delta)[seg_idx], x, y)[0]
         out = np.zeros(len(spans) - 1)
         point_spans = np.concatenate([[0], np.cumsum(counts)])[spans]
         for b, (lo, hi) in enumerate(zip(point_spans[:-1], point_spans[1:])):
@@ -395,7 +395,7 @@ class EdgeEvidence:
             return 0.0
         h, w = self.shape
         x, y = np.clip(np.rint(pieces.mean(axis=1)).astype(int) + 1, 0, [w + 1, h + 1]).T
-        near, chance = self._layer(tolerance_px).at(self.orientation_bin(pieces), x, y)
+        near, chance = self._holding((tolerance_px,))[0].at(self.orientation_bin(pieces), x, y)
         return beyond_chance(near.sum(), chance.sum(), len(pieces))
 
     def maps(self, tolerances: tuple[float, ...]) -> "LookUpMaps":
@@ -409,14 +409,6 @@ class EdgeEvidence:
                 self._fill_maps(b, maps)
             self._maps[tolerances] = maps
         return self._maps[tolerances]
-
-    def _layer(self, tolerance_px: float) -> "LookUpMaps":
-        """Maps holding ``tolerance_px`` as their first layer: one already built (they hold
-        the look-up tolerance first), else built for it alone."""
-        for tolerances, maps in tuple(self._maps.items()):  # a copy: another thread may add maps
-            if tolerances[0] == tolerance_px:
-                return maps
-        return self.maps((tolerance_px,))
 
     def _unset_maps(self, tolerances: tuple[float, ...]) -> "LookUpMaps":
         """``LookUpMaps`` at ``tolerances``, allocated over their window, values unset.
