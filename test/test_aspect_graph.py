@@ -14,7 +14,8 @@ from brepose_ros.offline.compiler import compile_aspect_graph
 from brepose_ros.offline.cad import load_step
 from brepose_ros.geometry import look_at_rotation, normalize
 from brepose_ros.offline.hidden_lines import METHODS, OUTLINE, SHARP, HiddenLineRemover, view_coordinates
-from brepose_ros.viewsphere import fibonacci_directions, lonlat_directions, nearest_views, view_ups
+from brepose_ros.online.kernels import nearest_views_kernel
+from brepose_ros.viewsphere import direction_cells, fibonacci_directions, lonlat_directions, nearest_views, view_ups
 
 
 # ----------------------------------------------------------------------------- view sphere
@@ -45,6 +46,36 @@ def test_nearest_views_are_sorted_by_angle():
     angles = np.arccos(np.clip(directions[nearest] @ query, -1, 1))
     assert np.all(np.diff(angles) >= 0)
     assert nearest_views(directions, directions[:4], k=3).shape == (4, 3)
+
+
+@pytest.mark.parametrize("directions", [fibonacci_directions(3.0), fibonacci_directions(40.0), lonlat_directions(7),
+                                        np.array([[0.0, 0.0, -1.0]])], ids=["spiral-3", "spiral-40", "lonlat", "one"])
+def test_the_cells_nearest_view_is_every_views(directions):
+    """The cell look-up gives the view of the scan over all views, the first of equal products
+    too: at random poses, at poses seen exactly along a view and along a cube edge, at a
+    direction of rounding noise about zero, and at a NaN one (the scan's view 0)."""
+    rng = np.random.default_rng(5)
+    n = 20000
+    center = np.array([0.01, -0.02, 0.005])
+    q, _ = np.linalg.qr(rng.normal(size=(n, 3, 3)))
+    R = np.ascontiguousarray(q)
+    seen = rng.normal(size=(n, 3)) * rng.choice([1e-3, 1.0, 1e3], size=(n, 1))  # R^T t + c, any scale
+    seen[:200] = directions[rng.integers(0, len(directions), 200)] * 0.4
+    seen[200:210] = normalize(np.array([1.0, 1.0, 0.0])) * 0.3
+    seen[210:212], seen[212] = 0.0, np.nan
+    t = np.einsum("bij,bj->bi", R, seen - center)
+    cells = direction_cells(directions)
+    assert len(cells[0]) > 1 and np.all(np.diff(cells[0]) > 0)
+    scanned, looked_up = np.empty(n, np.int64), np.empty(n, np.int64)
+    none = np.zeros(0, np.int64)
+    nearest_views_kernel(R, t, directions, center, none, none, scanned)
+    nearest_views_kernel(R, t, directions, center, *cells, looked_up)
+    assert np.array_equal(scanned, looked_up)
+    assert scanned[212] == 0
+
+
+def test_directions_that_are_not_unit_get_no_cells():
+    assert all(len(a) == 0 for a in direction_cells(fibonacci_directions(30.0) * 1.01))
 
 
 # ----------------------------------------------------------------------------- hidden lines

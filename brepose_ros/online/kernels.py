@@ -151,11 +151,12 @@ def _gauss_newton(R: np.ndarray, t: np.ndarray, points: np.ndarray, lines: np.nd
 
 @njit(nogil=True, cache=True)
 def refine_rounds_kernel(R: np.ndarray, t: np.ndarray, view_directions: np.ndarray, model_center: np.ndarray,
-                         seg_offsets: np.ndarray, seg_3d: np.ndarray, image_2d: np.ndarray, image_lines: np.ndarray,
-                         tolerance: float, factors: np.ndarray, rough_iterations: int, fine_iterations: int,
-                         min_cos: float) -> None:
+                         cell_starts: np.ndarray, cell_views: np.ndarray, seg_offsets: np.ndarray, seg_3d: np.ndarray,
+                         image_2d: np.ndarray, image_lines: np.ndarray, tolerance: float, factors: np.ndarray,
+                         rough_iterations: int, fine_iterations: int, min_cos: float) -> None:
     """``refinement.PoseRefiner.refine`` of poses R (B, 3, 3), t (B, 3), in place: per
-    pose and round, the graph view nearest to the pose (``AspectGraph.nearest_views``), its
+    pose and round, the graph view nearest to the pose (``AspectGraph.nearest_views``, its
+    ``view_cells`` as ``cell_starts``, ``cell_views``), its
     segments seg_3d (S, 2, 3) projected and paired with their nearest image segments
     (``nearest_lines`` at ``factors[round] * tolerance``, normalised units), then the
     Gauss-Newton steps on the pairs (``refine_poses``: Huber at ``tolerance``,
@@ -178,7 +179,7 @@ def refine_rounds_kernel(R: np.ndarray, t: np.ndarray, view_directions: np.ndarr
         for factor in factors:
             if not t[b, 2] > 0:
                 break
-            view = _nearest_view(R[b], t[b], view_directions, model_center)
+            view = _nearest_view(R[b], t[b], view_directions, model_center, cell_starts, cell_views)
             lo, hi = seg_offsets[view], seg_offsets[view + 1]
             for s in range(hi - lo):
                 for e in range(2):
@@ -270,7 +271,8 @@ def warm_up() -> None:
     square = np.array([[[-0.1, -0.1, 0.0], [0.1, -0.1, 0.0]], [[0.1, -0.1, 0.0], [0.1, 0.1, 0.0]],
                        [[0.1, 0.1, 0.0], [-0.1, 0.1, 0.0]], [[-0.1, 0.1, 0.0], [-0.1, -0.1, 0.0]]])
     drawn = square[..., :2] * 1.01
-    refine_rounds_kernel(R, t, np.array([[0.0, 0.0, -1.0]]), np.zeros(3), np.array([0, 4]), square, drawn,
+    cells = np.arange(7, dtype=np.int64), np.zeros(6, np.int64)  # one view in each of the 6 cells of n = 1
+    refine_rounds_kernel(R, t, np.array([[0.0, 0.0, -1.0]]), np.zeros(3), *cells, np.array([0, 4]), square, drawn,
                          np.ones((4, 3)), 0.01, np.array([2.0, 1.0]), 1, 1, 0.9)
     from . import matching, prefilter  # here, not at the top: they import this module
     matching.align(segments, np.array([0, 2]), np.zeros(1, np.int64), np.zeros(1), segments, np.array([0, 2]),
@@ -280,10 +282,11 @@ def warm_up() -> None:
     chamfer_scores_kernel(np.zeros((6, 4, 4), np.float32), np.zeros((1, 2, 2), np.float32),
                           np.zeros((1, 2), np.float32), 1, np.zeros(1, np.int64), phis, np.cos(phis), np.sin(phis),
                           2.0, 1.0, 0.25, np.empty((1, 2), np.float32))
-    align_on_edges_kernel(R, t, np.array([[2.0]]), np.array([[0.0, 0.0, -1.0]]), np.zeros(3), np.array([0, 4]), square,
-                          np.ones(4), np.array([100.0, 100.0, 2.0, 2.0]), np.zeros(8), np.zeros((8, 4, 4), np.int32),
-                          np.zeros(2, np.int64), np.zeros((1, 2)), 3.0, 12, 3, np.zeros((1, 6, 6)), np.zeros(1))
-    nearest_views_kernel(R, t, np.eye(3), np.zeros(3), np.zeros(1, np.int64))
+    align_on_edges_kernel(R, t, np.array([[2.0]]), np.array([[0.0, 0.0, -1.0]]), np.zeros(3), *cells,
+                          np.array([0, 4]), square, np.ones(4), np.array([100.0, 100.0, 2.0, 2.0]), np.zeros(8),
+                          np.zeros((8, 4, 4), np.int32), np.zeros(2, np.int64), np.zeros((1, 2)), 3.0, 12, 3,
+                          np.zeros((1, 6, 6)), np.zeros(1))
+    nearest_views_kernel(R, t, np.eye(3), np.zeros(3), *cells, np.zeros(1, np.int64))
     connected_labels(2, np.zeros(1, np.int64), np.ones(1, np.int64))
     gradient = np.ones((4, 4), np.float32)
     scaled_int16(gradient, gradient, 16.0)
@@ -597,25 +600,57 @@ def _in_window(x: int, y: int, window: np.ndarray, maps: np.ndarray) -> tuple[in
 
 
 @njit(nogil=True, cache=True)
-def _nearest_view(R: np.ndarray, t: np.ndarray, view_directions: np.ndarray, model_center: np.ndarray) -> int:
+def _nearest_view(R: np.ndarray, t: np.ndarray, view_directions: np.ndarray, model_center: np.ndarray,
+                  cell_starts: np.ndarray, cell_views: np.ndarray) -> int:
     """``AspectGraph.nearest_views`` of one pose R (3, 3), t (3,): the view the camera sees
-    the part from, the largest product with R^T t + c."""
+    the part from, the largest product with R^T t + c (the first of equal ones). Only the
+    views of its cell are compared (``viewsphere.direction_cells``: ``cell_starts``,
+    ``cell_views``, ascending, so the first of equal products is the whole scan's), every
+    view where there are no cells or the direction is not a finite non-zero vector."""
     dx = model_center[0] + R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2]
     dy = model_center[1] + R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2]
     dz = model_center[2] + R[0, 2] * t[0] + R[1, 2] * t[1] + R[2, 2] * t[2]
+    cell = _direction_cell(dx, dy, dz, len(cell_starts) - 1)
     view, most = 0, -np.inf
+    if cell >= 0:
+        for c in range(cell_starts[cell], cell_starts[cell + 1]):
+            v = cell_views[c]
+            product = view_directions[v, 0] * dx + view_directions[v, 1] * dy + view_directions[v, 2] * dz
+            if product > most:
+                view, most = v, product
+        return view
     for v in range(len(view_directions)):
         product = view_directions[v, 0] * dx + view_directions[v, 1] * dy + view_directions[v, 2] * dz
         if product > most:
             view, most = v, product
     return view
 
+
+@njit(nogil=True, cache=True, inline="always")
+def _direction_cell(dx: float, dy: float, dz: float, cells: int) -> int:
+    """The cell of ``viewsphere.direction_cells`` (``cells`` = 6 n^2 of them) holding the
+    direction (dx, dy, dz), or -1 if there are none or the direction is zero or not finite."""
+    ax, ay, az = abs(dx), abs(dy), abs(dz)
+    if ax >= ay and ax >= az:  # the faces' axes as viewsphere.CUBE_FACES orders them
+        face, u, v, most = 0 if dx > 0 else 1, dy, dz, ax
+    elif ay >= az:
+        face, u, v, most = 2 if dy > 0 else 3, dx, dz, ay
+    else:
+        face, u, v, most = 4 if dz > 0 else 5, dx, dy, az
+    if cells <= 0 or not (0.0 < most < np.inf):
+        return -1
+    n = int(np.sqrt(cells // 6) + 0.5)
+    i = min(max(int((u / most + 1.0) * 0.5 * n), 0), n - 1)
+    j = min(max(int((v / most + 1.0) * 0.5 * n), 0), n - 1)
+    return (face * n + i) * n + j
+
+
 @njit(nogil=True, cache=True)
 def nearest_views_kernel(R: np.ndarray, t: np.ndarray, view_directions: np.ndarray, model_center: np.ndarray,
-                         out: np.ndarray) -> None:
+                         cell_starts: np.ndarray, cell_views: np.ndarray, out: np.ndarray) -> None:
     """``AspectGraph.nearest_views`` of B poses R (B, 3, 3), t (B, 3) into ``out`` (B,)."""
     for b in range(len(R)):
-        out[b] = _nearest_view(R[b], t[b], view_directions, model_center)
+        out[b] = _nearest_view(R[b], t[b], view_directions, model_center, cell_starts, cell_views)
 
 
 # project_point and undistort_point are inlined into align_on_edges_kernel, three calls a
@@ -667,14 +702,15 @@ def undistort_point(u: float, v: float, intrinsics: np.ndarray, distortion: np.n
 
 @njit(nogil=True, cache=True)
 def align_on_edges_kernel(R: np.ndarray, t: np.ndarray, radii: np.ndarray, view_directions: np.ndarray,
-                          model_center: np.ndarray, seg_offsets: np.ndarray, seg_3d: np.ndarray,
-                          seg_weights: np.ndarray, intrinsics: np.ndarray, distortion: np.ndarray,
-                          labels: np.ndarray, origin: np.ndarray, pixels: np.ndarray, spacing: float,
-                          min_points: int, iterations: int, normal_out: np.ndarray, variance_out: np.ndarray) -> None:
+                          model_center: np.ndarray, cell_starts: np.ndarray, cell_views: np.ndarray,
+                          seg_offsets: np.ndarray, seg_3d: np.ndarray, seg_weights: np.ndarray,
+                          intrinsics: np.ndarray, distortion: np.ndarray, labels: np.ndarray, origin: np.ndarray,
+                          pixels: np.ndarray, spacing: float, min_points: int, iterations: int,
+                          normal_out: np.ndarray, variance_out: np.ndarray) -> None:
     """``refinement.align_on_edges`` of poses R (B, 3, 3), t (B, 3), in place: per pose
-    and pairing k with ``radii[b, k]`` > 0, the visible segments of the nearest view
-    projected (``project_point``), a point every ``spacing`` pixels along each, paired with the
-    nearest like-oriented edge pixel (``labels`` (BINS, rows, cols) from ``origin``, rows of
+    and pairing k with ``radii[b, k]`` > 0, the visible segments of the nearest view (of its
+    cell's, ``_nearest_view``) projected (``project_point``), a point every ``spacing`` pixels
+    along each, paired with the nearest like-oriented edge pixel (``labels`` (BINS, rows, cols) from ``origin``, rows of
     ``pixels`` (L, 2), ``EdgeEvidence.nearest_like``, reaching every radius) within the
     radius, the line through that pixel along the model edge (``undistort_point``), then
     ``iterations`` Gauss-Newton steps with Huber at half the radius, each pair weighted by
@@ -693,7 +729,7 @@ def align_on_edges_kernel(R: np.ndarray, t: np.ndarray, radii: np.ndarray, view_
             radius = radii[b, k]
             if not radius > 0:
                 continue
-            view = _nearest_view(R[b], t[b], view_directions, model_center)
+            view = _nearest_view(R[b], t[b], view_directions, model_center, cell_starts, cell_views)
             lo, hi = seg_offsets[view], seg_offsets[view + 1]
             # the points of every segment first, to size the arrays of the pairs
             ends = np.empty((hi - lo, 2, 2))

@@ -226,10 +226,10 @@ def align_on_edges(R: np.ndarray, t: np.ndarray, graph: AspectGraph, frame: Fram
     if camera.has_distortion:
         distortion[:len(camera.dist_coeffs)] = camera.dist_coeffs
     normal, variance = np.zeros((len(R), 6, 6)), np.full(len(R), np.nan)
-    align_on_edges_kernel(R, t, radii, graph.view_directions, graph.model_center, graph.seg_offsets, graph.seg_3d,
-                          EDGE_KIND_WEIGHTS[graph.seg_kind], np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
-                          distortion, *nearest, EDGE_SPACING_PIXELS, MIN_EDGE_POINTS, EDGE_ITERATIONS, normal,
-                          variance)
+    align_on_edges_kernel(R, t, radii, graph.view_directions, graph.model_center, *graph.view_cells, graph.seg_offsets,
+                          graph.seg_3d, EDGE_KIND_WEIGHTS[graph.seg_kind],
+                          np.array([camera.fx, camera.fy, camera.cx, camera.cy]), distortion, *nearest,
+                          EDGE_SPACING_PIXELS, MIN_EDGE_POINTS, EDGE_ITERATIONS, normal, variance)
     if covariance_out is not None:
         _covariances(normal, variance, covariance_out)
     return R, t
@@ -521,8 +521,8 @@ class PoseRefiner:
         R, t = np.array(R, dtype=float), np.array(t, dtype=float)
         if len(frame.refine_segments_n):
             image = np.ascontiguousarray(frame.refine_segments_n, dtype=float)
-            refine_rounds_kernel(R, t, g.view_directions, g.model_center, g.seg_offsets, g.seg_3d, image,
-                                 line_equations(image), p.inlier_pixels / frame.camera.focal,
+            refine_rounds_kernel(R, t, g.view_directions, g.model_center, *g.view_cells, g.seg_offsets, g.seg_3d,
+                                 image, line_equations(image), p.inlier_pixels / frame.camera.focal,
                                  np.asarray(rounds, dtype=float), ROUGH_ITERATIONS, FINE_ITERATIONS,
                                  cos_deg(NEAREST_MAX_ANGLE_DEG))
         return R, t
