@@ -6,6 +6,7 @@ import pytest
 
 from brepose_ros.online import search
 from brepose_ros.online.scoring import EdgeEvidence
+from brepose_ros.online.workers import WorkerPool
 from brepose_ros.params import SearchParams
 from graph_helpers import one_view_graph
 
@@ -311,6 +312,26 @@ def test_the_estimator_finds_the_part_with_the_search_as_generator(bracket_graph
     else:  # after the tetrads the search runs only while no pose is clear: here at least once
         assert any("search" in r.estimate.timings for r in results)
     assert sum(bool(r.errors and r.errors.success) for r in results) >= least, scene_summary(results)
+
+
+def test_each_bins_block_bounds_are_the_maximum_of_its_blocks_cells():
+    """``ResponseMaps.bounds``, built bin by bin on two threads: ``bounds[py, px, b, Y, X]`` is
+    the maximum of ``maps[b]`` over the BLOCK x BLOCK cells from (BLOCK Y + py, BLOCK X + px),
+    0 past the maps' end."""
+    image = Drawing(120, 160)
+    image.draw(np.array([[[10, 10], [50, 10]], [[100, 100], [150, 30]], [[5, 110], [70, 60]]], float))
+    pool = WorkerPool(2)
+    maps = search.ResponseMaps.of(image.evidence(), 4, 1, 3, pool=pool)
+    pool.close()
+    block, bins = search.BLOCK, maps.maps.shape[0]
+    assert maps.maps.any() and maps.bounds.shape[:3] == (block, block, bins)
+    for py in range(block):
+        for px in range(block):
+            for y in range(maps.bounds.shape[3]):
+                for x in range(maps.bounds.shape[4]):
+                    cells = maps.maps[:, block * y + py:block * (y + 1) + py, block * x + px:block * (x + 1) + px]
+                    expected = cells.max(axis=(1, 2)) if cells.size else np.zeros(bins)
+                    assert np.array_equal(maps.bounds[py, px, :, y, x], expected)
 
 
 def test_response_maps_of_a_box_keep_only_the_edges_inside_it():
