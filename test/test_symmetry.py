@@ -233,11 +233,12 @@ def test_a_nearly_rotational_part_is_checked_against_its_end_over_end_twins():
 
     ends = [ring(73) + point + [0, 0, z] for z in (-0.035, 0.035)]
     dense = [ring(7201) + point + [0, 0, z] for z in (-0.035, 0.035)]  # the rings as curves, to 0.01 mm
-    graph = graph_with(symmetry_axes=np.array([[point, axis]]), symmetry_axis_shares=np.array([0.63]))
+    graph = graph_with(no_turns(), symmetry_axes=np.array([[point, axis]]), symmetry_axis_shares=np.array([0.63]))
     camera = Camera(fx=600.0, fy=600.0, cx=320.0, cy=240.0, width=640, height=480)
     R, t = look_at_rotation(np.array([1.0, 0.4, -0.3])), np.array([0.01, -0.005, 0.25])
-    R_twins, t_twins = end_over_end(graph, R, t)
-    assert len(R_twins) == ACROSS_DIRECTIONS
+    R_twins, t_twins, axis_of, keeps_outline = end_over_end(graph, R, t)
+    assert len(R_twins) == ACROSS_DIRECTIONS and (axis_of == 0).all()
+    assert np.flatnonzero(keeps_outline).tolist() == [0, ACROSS_DIRECTIONS // 2]
     sight = R.T @ (R @ graph.model_center + t)
     for R_twin, t_twin in zip(R_twins, t_twins):
         assert rotation_angle_deg(R_twin, R) == pytest.approx(180.0)
@@ -259,6 +260,44 @@ def test_a_nearly_rotational_part_is_checked_against_its_end_over_end_twins():
     assert len(end_over_end(graph, along, np.array([0.0, 0.0, 0.25]))[0]) == 0
     exact = graph_with(symmetry_axes=np.array([[point, axis]]), symmetry_axis_shares=np.ones(1))
     assert len(end_over_end(exact, R, t)[0]) == 0
+
+
+def no_turns() -> dict:
+    """``graph_with``'s symmetries for a part without discrete ones."""
+    return dict(symmetry_rotations=np.zeros((0, 3, 3)), symmetry_translations=np.zeros((0, 3)),
+                symmetry_shares=np.zeros(0))
+
+
+@pytest.mark.parametrize("order, distinct", [(6, 2), (2, 6), (4, 3), (5, 12)])
+def test_end_over_end_twins_that_an_exact_turn_makes_one_pose_are_tried_once(order, distinct):
+    """Two half turns across an axis differ by a turn about it of twice the angle between
+    them: where that turn is an exact symmetry (a flange's bolt circle turned by a sixth, a
+    slotted screw's half turn), the two twins are one pose of the part and only the first is
+    refined. With exact turns by 1/``order`` about the axis, the 15-degree directions give
+    2 twins (six-fold: directions 30 degrees apart differ by a sixth), 6 (a half turn), 3
+    (four-fold) or, for a five-fold turn that no multiple of 30 degrees reaches, all 12. No
+    exact turn maps one kept twin onto another (the five-fold turns come within 6 degrees
+    of some); the twin square to the line of sight keeps the outline, and so does the one
+    nearest it, for even orders the same pose as the first."""
+    from brepose_ros.online.symmetry import ACROSS_DIRECTIONS, end_over_end
+
+    point, axis = np.array([0.002, -0.001, 0.003]), np.array([0.0, 0.0, 1.0])
+    turns = np.array([rotation_about(axis, 2 * np.pi * k / order) for k in range(1, order)])
+    graph = graph_with(symmetry_rotations=turns, symmetry_translations=point - turns @ point,
+                       symmetry_shares=np.full(order - 1, 0.98), symmetry_axes=np.array([[point, axis]]),
+                       symmetry_axis_shares=np.array([0.6]))
+    R, t = look_at_rotation(np.array([1.0, 0.4, -0.3])), np.array([0.01, -0.005, 0.25])
+    R_twins, t_twins, axis_of, keeps_outline = end_over_end(graph, R, t)
+    assert len(R_twins) == distinct
+    everything = end_over_end(graph_with(no_turns(), symmetry_axes=graph.symmetry_axes,
+                                         symmetry_axis_shares=graph.symmetry_axis_shares), R, t)
+    assert len(everything[0]) == ACROSS_DIRECTIONS
+    assert np.allclose(R_twins[0], everything[0][0]) and np.allclose(t_twins[0], everything[1][0])
+    for a in range(len(R_twins)):  # model frame: what turns twin a's part into twin b's
+        for b in range(a + 1, len(R_twins)):
+            between = R_twins[a].T @ R_twins[b]
+            assert min(rotation_angle_deg(between, S) for S in [np.eye(3), *turns]) > 5.0
+    assert keeps_outline[0] and keeps_outline.sum() == (1 if order % 2 == 0 else 2)
 
 
 # ----------------------------------------------------------------------------- run time

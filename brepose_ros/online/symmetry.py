@@ -98,7 +98,7 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     back as well fitted as the winner, and a pose the image could not tell from the winner
     still makes it ambiguous."""
     near = np.nonzero(~graph.exact_symmetries)[0]
-    R_flip, t_flip = end_over_end(graph, best.R, best.t)
+    R_flip, t_flip, axis_of, keeps_outline = end_over_end(graph, best.R, best.t)
     if len(near) == 0 and len(R_flip) == 0:
         return best, None
     R, t = graph.symmetric_poses(best.R, best.t, near)
@@ -114,9 +114,10 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
         # apart, one of them says so
         R_flip, t_flip, scores = refiner.refined_scores(R_flip, t_flip, frame, p,
                                                         hypothesis_rounds(p.refine_iterations), pool, align=True)
-        for first in range(0, len(R_flip), ACROSS_DIRECTIONS):
-            best_k = first + int(np.argmax(scores[first:first + ACROSS_DIRECTIONS]))
-            for k in sorted({best_k, first, first + ACROSS_DIRECTIONS // 2}):
+        for axis in np.unique(axis_of):
+            members = np.flatnonzero(axis_of == axis)
+            best_k = int(members[np.argmax(scores[members])])
+            for k in sorted({best_k, *members[keeps_outline[members]].tolist()}):
                 starts.append(Candidate(float(scores[k]), R_flip[k], t_flip[k], best.hypothesis))
     # climbed over neighbouring views like the pose was: a near symmetry's twin starts a
     # few degrees off, and a twin left in a worse optimum would lose for that alone
@@ -127,30 +128,63 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     return winner, margin
 
 
-def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The twins (K, 3, 3), (K, 3) of pose R, t turned end over end about each near (not
-    exact) continuous axis of the part: half turns about ``ACROSS_DIRECTIONS`` axes across it
-    through its point, evenly over a half circle from the one square to the line of sight
-    (the ``ACROSS_DIRECTIONS // 2``-th is the one nearest it). A nearly rotational part (a shaft with
-    a flat, a screw) shows almost the same outline turned so (the silhouette of a body of
-    revolution is symmetric about its axis's middle), and its stored near symmetries are turns
-    about the axis, which do not reach that twin. Which axis across maps the part's odd
-    features (a flat, a cross hole) onto the image is the roll about its axis, which the image
-    tells least: the pose's own roll may be off by any angle, so every direction is tried."""
+    exact) continuous axis of the part, the index of that axis (K,), and whether each keeps the
+    outline (K,): half turns about ``ACROSS_DIRECTIONS`` axes across it through its point,
+    evenly over a half circle from the one square to the line of sight (which, and the
+    ``ACROSS_DIRECTIONS // 2``-th, nearest it, keep the outline). A nearly rotational part (a
+    shaft with a flat, a screw) shows almost the same outline turned so (the silhouette of a
+    body of revolution is symmetric about its axis's middle), and its stored near symmetries
+    are turns about the axis, which do not reach that twin. Which axis across maps the part's
+    odd features (a flat, a cross hole) onto the image is the roll about its axis, which the
+    image tells least: the pose's own roll may be off by any angle, so every direction is
+    tried, but once: two half turns across differ by a turn about the axis of twice the angle
+    between them, and where that turn is an exact symmetry (a flange's bolt circle turned by a
+    sixth) the two twins are one pose of the part (``distinct_turns``)."""
     near_axes = graph.symmetry_axes[~graph.exact_axes]
-    R_twins, t_twins = [], []
+    R_twins, t_twins, axis_of, keeps_outline = [], [], [], []
     sight = R.T @ (R @ graph.model_center + t)  # camera to the part's centre, in the model frame
-    for point, axis in near_axes:
+    for index, (point, axis) in enumerate(near_axes):
         across = np.cross(axis, sight)
         if np.linalg.norm(across) < 1e-9 * np.linalg.norm(sight):
             continue  # seen along the axis: the outline is a circle, no end is in view
         across /= np.linalg.norm(across)
-        for angle in np.pi * np.arange(ACROSS_DIRECTIONS) / ACROSS_DIRECTIONS:
-            S = rotation_about(rotation_about(axis, angle) @ across, np.pi)
-            R_twin = R @ S.T  # the model turned by S about the line through ``point``
+        turns = [rotation_about(rotation_about(axis, angle) @ across, np.pi)
+                 for angle in np.pi * np.arange(ACROSS_DIRECTIONS) / ACROSS_DIRECTIONS]
+        first = distinct_turns(graph, np.array(turns), point)
+        for k in np.unique(first):
+            R_twin = R @ turns[k].T  # the model turned by the half turn about the line through ``point``
             R_twins.append(R_twin)
-            t_twins.append(t - R_twin @ (point - S @ point))
-    return np.array(R_twins).reshape(-1, 3, 3), np.array(t_twins).reshape(-1, 3)
+            t_twins.append(t - R_twin @ (point - turns[k] @ point))
+            axis_of.append(index)
+            keeps_outline.append(bool(np.isin(k, first[[0, ACROSS_DIRECTIONS // 2]])))
+    return (np.array(R_twins).reshape(-1, 3, 3), np.array(t_twins).reshape(-1, 3),
+            np.array(axis_of, dtype=np.int64), np.array(keeps_outline, dtype=bool))
+
+
+def distinct_turns(graph: AspectGraph, turns: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """(K,) for each of the half ``turns`` (K, 3, 3) about lines through ``point``, the first
+    of them that the part's exact discrete symmetries make the same map of the part (the
+    model turned by one, then by the symmetry, lies where the other turns it:
+    ``refinement.SAME_POSE_DEG`` and ``SAME_POSE_DIAMETERS``)."""
+    exact_R = graph.symmetry_rotations[graph.exact_symmetries]
+    exact_b = graph.symmetry_translations[graph.exact_symmetries]
+    shifts = point - turns @ point  # each turn maps X to turns[k] @ X + shifts[k]
+    first = np.arange(len(turns))
+    for k in range(1, len(turns)):
+        for j in range(k):
+            if first[j] != j:
+                continue
+            # the symmetries after turn j, against turn k
+            apart = np.einsum("sij,jk,lk->sil", exact_R, turns[j], turns[k])
+            angles = np.degrees(np.arccos(np.clip((np.trace(apart, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+            offsets = np.linalg.norm(exact_R @ shifts[j] + exact_b - shifts[k], axis=1)
+            if np.any((angles < SAME_POSE_DEG) & (offsets < SAME_POSE_DIAMETERS * graph.model_diameter)):
+                first[k] = j
+                break
+    return first
 
 
 def check_rivals(finalists: list[Candidate], graph: AspectGraph, frame: Frame, p: PoseParams) -> Candidate:
