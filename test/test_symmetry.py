@@ -262,6 +262,72 @@ def test_a_nearly_rotational_part_is_checked_against_its_end_over_end_twins():
     assert len(end_over_end(exact, R, t)[0]) == 0
 
 
+
+def test_a_climbed_end_over_end_twin_is_rolled_to_the_best_scoring_of_a_few_turns_about_the_axis(monkeypatch):
+    """``rolled``: the twin turned about the near axis through its point (off the origin) by
+    each of ``ROLL_STEPS_DEG``; the best-scoring one replaces the twin only if it scores more.
+    A score that peaks at the roll 4 degrees back brings the twin there, the axis's point
+    staying where the twin shows it; a score that peaks at the twin itself keeps it."""
+    from brepose_ros.online import symmetry
+    from brepose_ros.online.refinement import Candidate
+
+    point, axis = np.array([0.002, -0.001, 0.003]), np.array([0.0, 0.6, 0.8])
+    R_true, t = look_at_rotation(np.array([1.0, 0.4, -0.3])), np.array([0.01, -0.005, 0.25])
+    off = rotation_about(axis, np.radians(4.0))  # the twin's part turned 4 degrees too far about the axis
+    R_twin = R_true @ off.T
+    twin = Candidate(0.5, R_twin, t - R_twin @ (point - off @ point), None)
+
+    def peaked(graph, R, t, frame, p):  # the score falls off with the angle from the true rotation
+        return np.array([0.7 - 0.01 * rotation_angle_deg(R_k, R_true) for R_k in R])
+
+    monkeypatch.setattr(symmetry, "pose_scores", peaked)
+    kept = symmetry.rolled(twin, point, axis, graph_with(), None, None)
+    assert rotation_angle_deg(kept.R, R_true) < 1e-4 and kept.score == pytest.approx(0.7)
+    assert np.allclose(kept.R @ point + kept.t, twin.R @ point + twin.t)  # turned about the axis's line
+    assert np.allclose(kept.t, t)
+    assert symmetry.rolled(Candidate(0.75, R_twin, twin.t, None), point, axis, graph_with(), None, None).score == 0.75
+
+
+
+def test_the_end_over_end_twins_that_climb_are_the_best_two_still_turned_and_the_outline_keepers(monkeypatch):
+    """``check_twins``: of the refined end-over-end twins, the two best-scoring ones whose axis
+    still points against the pose's climb, besides the two that keep the outline (square to
+    the line of sight and nearest it); one refined back to the pose's end (its axis pointing
+    the pose's way) takes no climb however well it scores."""
+    from brepose_ros.online import symmetry
+    from brepose_ros.online.refinement import Candidate
+    from brepose_ros.params import EstimatorParams
+
+    point, axis = np.array([0.002, -0.001, 0.003]), np.array([0.0, 0.0, 1.0])
+    graph = graph_with(no_turns(), symmetry_axes=np.array([[point, axis]]), symmetry_axis_shares=np.array([0.63]))
+    best = Candidate(0.7, look_at_rotation(np.array([1.0, 0.4, -0.3])), np.array([0.01, -0.005, 0.25]), None)
+    scores = np.full(symmetry.ACROSS_DIRECTIONS, 0.1)
+    scores[[3, 5, 8]] = 0.9, 0.8, 0.7
+
+    class Refiner:  # each twin refined where it started, but twin 3 back onto the pose
+        def refined_scores(self, R, t, frame, p, rounds, pool, align):
+            R, t = R.copy(), t.copy()
+            R[3], t[3] = best.R, best.t
+            return R, t, scores
+
+        def climb_together(self, starts, frame, p, pool, each_alone):
+            return list(starts)
+
+        def polished(self, chosen, frame, p, pool):
+            return chosen
+
+        def refine(self, R, t, frame, p, rounds):
+            return R, t
+
+    compared = []
+    monkeypatch.setattr(symmetry, "pose_scores", lambda graph, R, t, frame, p: np.zeros(len(R)))
+    monkeypatch.setattr(symmetry, "pick_by_evidence", lambda pose, twins, *rest: (compared.extend(twins), (pose, 1.0))[1])
+    assert symmetry.check_twins(best, graph, Refiner(), None, EstimatorParams().pose) == (best, 1.0)
+    R_twins, _, _, _ = symmetry.end_over_end(graph, best.R, best.t)
+    climbed = [int(np.argmin([rotation_angle_deg(c.R, R_k) for R_k in R_twins])) for c in compared]
+    assert sorted(climbed) == [0, 5, symmetry.ACROSS_DIRECTIONS // 2, 8]
+
+
 def no_turns() -> dict:
     """``graph_with``'s symmetries for a part without discrete ones."""
     return dict(symmetry_rotations=np.zeros((0, 3, 3)), symmetry_translations=np.zeros((0, 3)),

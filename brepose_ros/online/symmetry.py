@@ -3,9 +3,9 @@
 A near-symmetric part (``offline.symmetry``) looks almost the same in a pose and in its twin,
 the pose turned by the symmetry: the score of both is high, and the estimator may settle on
 either. Here each twin of the final pose (``AspectGraph.symmetric_poses``, and for a nearly
-rotational part its end-over-end turns, ``end_over_end``) is refined, climbed and polished
-on the image like the pose was, and the two are compared on the only edges that tell them
-apart: the projected model edges of each that lie farther than
+rotational part its end-over-end turns, ``end_over_end``, and their rolls, ``rolled``) is
+refined, climbed and polished on the image like the pose was, and the two are compared on the
+only edges that tell them apart: the projected model edges of each that lie farther than
 ``DISTINCT_REACH`` inlier distances from every projected edge of the other (a hole on one
 side, a chamfer, a tab). The share of those edges that like image edges confirm beyond
 chance, counted as the score counts it (the local density of like edges is what chance
@@ -65,6 +65,14 @@ MIN_GAIN = 0.0175
 #: axes across a near continuous axis about which the end-over-end twins turn (every 15
 #: degrees: the refinement closes the rest; ``end_over_end``)
 ACROSS_DIRECTIONS = 12
+#: of those, the best-scoring this many still end over end climb (besides the two that keep the
+#: outline): the best alone was the shaft truth's end rolled half round (clutter 4), the
+#: second 4 degrees off the truth
+ACROSS_CLIMBED = 2
+#: turns about the near axis a climbed end-over-end twin is scored at (``rolled``): the
+#: climbed twins of the flange's clean 13 stood 6-8 degrees off the truth's roll (its bolt
+#: holes), the shaft's clutter 4 3-4 degrees
+ROLL_STEPS_DEG = (-8.0, -4.0, 4.0, 8.0)
 
 #: a twin scoring this or more is a rival of the pose, whatever ``pose.min_score``: the
 #: confidence's twin features (``twin_margin``, ``ambiguous``) were recorded with rivals from
@@ -105,23 +113,36 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     R, t = refiner.refine(R, t, frame, p, CLIMB_ROUNDS)
     starts = [Candidate(float(score), R_k, t_k, best.hypothesis)
               for R_k, t_k, score in zip(R, t, pose_scores(graph, R, t, frame, p))]
+    flip_axes = []  # the near axis (point, direction) each end-over-end start turned across
     if len(R_flip):
         # an end-over-end start lies up to half a direction step off, its roll and centre only
         # near: refined as a hypothesis is, aligned on the edge pixels first (from the climb
         # rounds alone the start nearest the shaft's truth scored below wrong ones). Of each
-        # axis's ``ACROSS_DIRECTIONS`` the best goes on, and the two that keep the outline
-        # (square to the line of sight and nearest it): where the image cannot tell the ends
-        # apart, one of them says so
+        # axis's ``ACROSS_DIRECTIONS`` the ``ACROSS_CLIMBED`` best still end over end go on,
+        # and the two that keep the outline (square to the line of sight and nearest it): where
+        # the image cannot tell the ends apart, one of them says so
         R_flip, t_flip, scores = refiner.refined_scores(R_flip, t_flip, frame, p,
                                                         hypothesis_rounds(p.refine_iterations), pool, align=True)
+        # a twin refined back to the pose's end (its axis pointing the pose's way again, at
+        # whatever roll) is no twin and takes no climb from one that is
+        near_axes = graph.symmetry_axes[~graph.exact_axes]
+        directions = near_axes[axis_of, 1]
+        turned = np.sum(np.einsum("kij,kj->ki", R_flip, directions) * (directions @ best.R.T), axis=1) < 0
         for axis in np.unique(axis_of):
             members = np.flatnonzero(axis_of == axis)
-            best_k = int(members[np.argmax(scores[members])])
-            for k in sorted({best_k, *members[keeps_outline[members]].tolist()}):
+            chosen = set(members[keeps_outline[members]].tolist())
+            across = members[turned[members]]
+            for k in across[np.argsort(-scores[across], kind="stable")][:ACROSS_CLIMBED]:
+                chosen.add(int(k))
+            for k in sorted(chosen):
                 starts.append(Candidate(float(scores[k]), R_flip[k], t_flip[k], best.hypothesis))
+                flip_axes.append(near_axes[axis])
     # climbed over neighbouring views like the pose was: a near symmetry's twin starts a
-    # few degrees off, and a twin left in a worse optimum would lose for that alone
-    twins = refiner.polished(refiner.climb_together(starts, frame, p, pool, each_alone=True), frame, p, pool)
+    # few degrees off, and a twin left in a worse optimum would lose for that alone; an
+    # end-over-end twin's roll is then scored a few degrees either way (``rolled``)
+    climbed = refiner.climb_together(starts, frame, p, pool, each_alone=True)
+    climbed[len(near):] = [rolled(c, *axis, graph, frame, p) for c, axis in zip(climbed[len(near):], flip_axes)]
+    twins = refiner.polished(climbed, frame, p, pool)
     winner, margin = pick_by_evidence(best, twins + (compared or []), graph, frame, p)
     if compared is None and winner is not best:
         return check_twins(winner, graph, refiner, frame, p, pool, compared=[best] + twins)
@@ -162,6 +183,20 @@ def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray
             keeps_outline.append(bool(np.isin(k, first[[0, ACROSS_DIRECTIONS // 2]])))
     return (np.array(R_twins).reshape(-1, 3, 3), np.array(t_twins).reshape(-1, 3),
             np.array(axis_of, dtype=np.int64), np.array(keeps_outline, dtype=bool))
+
+
+def rolled(twin: Candidate, point: np.ndarray, axis: np.ndarray, graph: AspectGraph, frame: Frame,
+           p: PoseParams) -> Candidate:
+    """The end-over-end ``twin`` turned about the near continuous axis through ``point`` by
+    the one of ``ROLL_STEPS_DEG`` that scores best, if it scores more than the twin: what
+    tells the roll of a nearly rotational part is its small odd features (a flange's bolt
+    holes), which the line rounds hardly move, while its outline stays put at any roll."""
+    turns = np.array([rotation_about(axis, np.radians(angle)) for angle in ROLL_STEPS_DEG])
+    R = twin.R @ turns.transpose(0, 2, 1)  # the model turned about the axis, as ``end_over_end`` turns it
+    t = twin.t - np.einsum("kij,kj->ki", R, point - turns @ point)
+    scores = pose_scores(graph, R, t, frame, p)
+    k = int(np.argmax(scores))
+    return Candidate(float(scores[k]), R[k], t[k], twin.hypothesis) if scores[k] > twin.score else twin
 
 
 def distinct_turns(graph: AspectGraph, turns: np.ndarray, point: np.ndarray) -> np.ndarray:
