@@ -320,8 +320,13 @@ def test_the_end_over_end_twins_that_climb_are_the_best_two_still_turned_and_the
             return R, t
 
     compared = []
+
+    def pick(pose, twins, *rest):  # the poses the check compares, the pose kept
+        compared.extend(twins)
+        return pose, 1.0
+
     monkeypatch.setattr(symmetry, "pose_scores", lambda graph, R, t, frame, p: np.zeros(len(R)))
-    monkeypatch.setattr(symmetry, "pick_by_evidence", lambda pose, twins, *rest: (compared.extend(twins), (pose, 1.0))[1])
+    monkeypatch.setattr(symmetry, "pick_by_evidence", pick)
     assert symmetry.check_twins(best, graph, Refiner(), None, EstimatorParams().pose) == (best, 1.0)
     R_twins, _, _, _ = symmetry.end_over_end(graph, best.R, best.t)
     climbed = [int(np.argmin([rotation_angle_deg(c.R, R_k) for R_k in R_twins])) for c in compared]

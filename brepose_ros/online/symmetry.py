@@ -154,16 +154,17 @@ def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray
     """The twins (K, 3, 3), (K, 3) of pose R, t turned end over end about each near (not
     exact) continuous axis of the part, the index of that axis (K,), and whether each keeps the
     outline (K,): half turns about ``ACROSS_DIRECTIONS`` axes across it through its point,
-    evenly over a half circle from the one square to the line of sight (which, and the
-    ``ACROSS_DIRECTIONS // 2``-th, nearest it, keep the outline). A nearly rotational part (a
-    shaft with a flat, a screw) shows almost the same outline turned so (the silhouette of a
-    body of revolution is symmetric about its axis's middle), and its stored near symmetries
-    are turns about the axis, which do not reach that twin. Which axis across maps the part's
-    odd features (a flat, a cross hole) onto the image is the roll about its axis, which the
-    image tells least: the pose's own roll may be off by any angle, so every direction is
-    tried, but once: two half turns across differ by a turn about the axis of twice the angle
-    between them, and where that turn is an exact symmetry (a flange's bolt circle turned by a
-    sixth) the two twins are one pose of the part (``distinct_turns``)."""
+    evenly over a half circle from the one square to the line of sight (that one and the
+    ``ACROSS_DIRECTIONS // 2``-th, the one nearest the line of sight, keep the outline). A
+    nearly rotational part (a shaft with a flat, a screw) shows almost the same outline turned
+    so (the silhouette of a body of revolution is symmetric about its axis's middle), and its
+    stored near symmetries are turns about the axis, which do not reach that twin. Which axis
+    across maps the part's odd features (a flat, a cross hole) onto the image is the roll
+    about its axis, which the image tells least: the pose's own roll may be off by any angle,
+    so every direction is tried, but once: two half turns across differ by a turn about the
+    axis of twice the angle between them, and where that turn is an exact symmetry (a
+    flange's bolt circle turned by a sixth) the two twins are one pose of the part
+    (``distinct_turns``)."""
     near_axes = graph.symmetry_axes[~graph.exact_axes]
     R_twins, t_twins, axis_of, keeps_outline = [], [], [], []
     sight = R.T @ (R @ graph.model_center + t)  # camera to the part's centre, in the model frame
