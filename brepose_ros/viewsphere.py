@@ -102,9 +102,10 @@ def direction_cells(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     The view nearest to any direction d of a cell lies within 2 r + a of the cell's centre c,
     r the cell's reach from c (its farthest corner: the cells are bounded by great circles)
-    and a the angle from c to the view nearest c: it is no farther from d than that view, r + a at most, and d lies within r of
-    c. n = ceil(sqrt(V / ``CELL_VIEWS``)) cells a face side leave a few views to compare
-    instead of all (``kernels._nearest_view``: 3.6 -> 0.1 us a pose at 2,500 views)."""
+    and a the angle from c to the view nearest c: it is no farther from d than that view,
+    r + a at most, and d lies within r of c. n = ceil(sqrt(V / ``CELL_VIEWS``)) cells a face
+    side leave a few views to compare instead of all (``kernels._nearest_view``: 3.6 -> 0.1 us
+    a pose at 2,500 views)."""
     directions = np.asarray(directions, dtype=float)
     empty = (np.zeros(0, np.int64), np.zeros(0, np.int64))
     if len(directions) == 0 or not np.all(np.abs(np.linalg.norm(directions, axis=1) - 1.0) <= 1e-12):

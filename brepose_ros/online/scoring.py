@@ -71,9 +71,16 @@ def scored_tolerances(graph: AspectGraph, p: PoseParams) -> tuple[float, ...]:
     """The tolerances, pixels, at which ``pose_scores`` looks a graph's edges up: the maps
     ``Frame.detect`` builds with the image's edges (``pose.outline_pixels`` only for a part
     with curved faces)."""
-    soft = p.outline_pixels != p.inlier_pixels and bool(np.any(graph.seg_kind != SHARP))
-    looked_up = (p.inlier_pixels, p.outline_pixels) if soft else (p.inlier_pixels,)
-    return looked_up + ((p.seen_pixels,) if p.seen_pixels > p.inlier_pixels else ())
+    curved = bool(np.any(graph.seg_kind != SHARP))
+    return look_up_tolerances(p.inlier_pixels, p.outline_pixels if curved else None, p.seen_pixels)
+
+
+def look_up_tolerances(inlier_px: float, outline_px: float | None, seen_px: float) -> tuple[float, ...]:
+    """The maps' tolerances a score reads, pixels, in their layers' order: the look-up
+    tolerance, the outlines' own where there are outlines (``outline_px`` not None) and it
+    differs, the seen cells' where it is wider than the look-up."""
+    outline = () if outline_px is None or outline_px == inlier_px else (float(outline_px),)
+    return (float(inlier_px),) + outline + ((float(seen_px),) if seen_px > inlier_px else ())
 
 
 def visible_rows(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -420,11 +427,10 @@ class EdgeEvidence:
         and builds that much). Every bin shares the window, so the maps stack."""
         h, w = self.shape
         if len(self.pixels) and tolerances:
-            margin = chamfer_ball(max(tolerances)).shape[0] // 2 + self.CHANCE_WINDOW // 2 + 1
-            (x_lo, y_lo), (x_hi, y_hi) = self.pixels.min(axis=0), self.pixels.max(axis=0)
+            top, left, bottom, right = self._edge_box(
+                chamfer_ball(max(tolerances)).shape[0] // 2 + self.CHANCE_WINDOW // 2 + 1)
             # in the coordinates of the image with its border: pixel (x, y) at (x + 1, y + 1)
-            top, left = max(y_lo + 1 - margin, 0), max(x_lo + 1 - margin, 0)
-            bottom, right = min(y_hi + 2 + margin, h + 2), min(x_hi + 2 + margin, w + 2)
+            top, left, bottom, right = max(top + 1, 0), max(left + 1, 0), min(bottom + 1, h + 2), min(right + 1, w + 2)
         else:
             top, left, bottom, right = 0, 0, 1, 1  # the border's corner: 0 everywhere
         shape = (len(tolerances), self.BINS, bottom - top, right - left)
@@ -487,13 +493,17 @@ class EdgeEvidence:
             return np.empty((self.BINS, 0, 0), np.int32), np.zeros(2, np.int64), math.inf
         top, left, bottom, right = 0, 0, h, w
         if math.isfinite(reach):
-            margin = int(math.ceil(reach)) + 1
-            (x_lo, y_lo), (x_hi, y_hi) = self.pixels.min(axis=0), self.pixels.max(axis=0)
-            top, left = max(y_lo - margin, 0), max(x_lo - margin, 0)
-            bottom, right = min(y_hi + margin + 1, h), min(x_hi + margin + 1, w)
+            top, left, bottom, right = self._edge_box(int(math.ceil(reach)) + 1)
+            top, left, bottom, right = max(top, 0), max(left, 0), min(bottom, h), min(right, w)
         if (bottom - top) * (right - left) > self.WHOLE_LABELS_SHARE * h * w:
             top, left, bottom, right, reach = 0, 0, h, w, math.inf
         return np.empty((self.BINS, bottom - top, right - left), np.int32), np.array([top, left], np.int64), reach
+
+    def _edge_box(self, margin: int) -> tuple[int, int, int, int]:
+        """The edge pixels' bounding box grown by ``margin`` pixels on every side, as (top,
+        left, bottom, right) with exclusive ends, not clipped to the image."""
+        (x_lo, y_lo), (x_hi, y_hi) = self.pixels.min(axis=0), self.pixels.max(axis=0)
+        return int(y_lo) - margin, int(x_lo) - margin, int(y_hi) + margin + 1, int(x_hi) + margin + 1
 
     def _nearest_bin(self, b: int, labels: np.ndarray, origin: np.ndarray) -> np.ndarray | None:
         """Bin ``b``'s labels written into ``labels[b]`` (int32, its window from ``origin``),
@@ -578,12 +588,13 @@ class EdgeEvidence:
         ``soft_tolerance_px``; zeros for a pose without segments or spanning less than
         ``min_size_px``; the counted pixels marked in ``labels`` if given (``counted_pixels``)."""
         model_px = np.ascontiguousarray(model_px, np.float64).reshape(-1, 2, 2)
-        if soft is None or soft_tolerance_px is None or soft_tolerance_px == tolerance_px or not np.any(soft):
-            tolerances, reach_of = (float(tolerance_px),), np.zeros(len(model_px), np.int64)
-        else:
-            tolerances, reach_of = (float(tolerance_px), float(soft_tolerance_px)), np.asarray(soft, np.int64)
+        outline_px = soft_tolerance_px if soft is not None and np.any(soft) else None
+        tolerances = look_up_tolerances(tolerance_px, outline_px, seen_tolerance_px)
+        # soft edges read layer 1 where the outlines have a tolerance of their own, else layer 0
+        apart = outline_px is not None and outline_px != tolerance_px
+        reach_of = np.asarray(soft, np.int64) if apart else np.zeros(len(model_px), np.int64)
         wide = seen_tolerance_px > tolerance_px  # else cells seen at the look-up tolerances alone
-        maps, layers = self._holding(tolerances + ((float(seen_tolerance_px),) if wide else ()))
+        maps, layers = self._holding(tolerances)
         spans = np.asarray(spans, np.int64)
         sums, run_on = np.zeros((len(spans) - 1, 5)), np.zeros((len(spans) - 1, 3))
         pose_evidence_kernel(model_px, layers[reach_of], spans, float(min_size_px), maps.near, maps.chance,
