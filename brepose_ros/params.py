@@ -176,9 +176,10 @@ class PoseParams(Ranged):
         "a pose whose confidence (the calibrated probability that it is right, online/confidence.py) is lower is "
         "reported as not found. The default, with pose.min_score 0.55, was chosen by bench/confidence.py on the "
         "tuning parts to find at least as many right poses as score >= 0.6 at no lower precision "
-        "(docs/results/confidence.md). 0.45, the bench's trusted rule (95 % of the reported poses right on the "
-        "tuning parts, the look-alike brackets' images left out), reports about half the right poses, 91 % of "
-        "them right on the bench's leave-out parts (30 of 33)", 0.08, 0.0, 1.0)
+        "(docs/results/confidence.md). 0.55, the bench's trusted rule (the level with the most right poses at 95 % "
+        "precision on the tuning parts, the look-alike brackets' images left out; chosen on one half of the images, "
+        "it held on the other), reports fewer than half the right poses, 86 of 88 of them right on 32 images per "
+        "part and condition (at least 92 % with 95 % confidence)", 0.08, 0.0, 1.0)
     prior: float = doc(
         "how often the part is in view, as a share of the images (1: always); the confidence is moved by Bayes' "
         "rule from the mix it was fitted at (half the images, brepose_ros/confidence.yaml) to this, so that it is "
