@@ -8,8 +8,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from brepose_ros.image_codec import decode_image
-from brepose_ros.online.image_edges import (EdgeParams, canny_edges, canny_thresholds, extract_segments, gradients,
-                                            merge_segments, to_gray)
+from brepose_ros.online.image_edges import (EdgeParams, _fit_lines, _refine_once, canny_edges, canny_thresholds,
+                                            extract_segments, gradients, merge_segments, to_gray)
 from brepose_ros.online.kernels import connected_labels, median_of_every_other, scaled_int16
 
 BACKGROUND = 110.0
@@ -204,6 +204,92 @@ def test_canny_inputs_compiled_are_numpys():
         halves = (rng.integers(-4000, 4000, shape) / 32).astype(np.float32)
         for ours, numpys in zip(scaled_int16(halves, -halves, 16.0), (halves, -halves)):
             assert np.array_equal(ours, np.round(numpys * 16.0).astype(np.int16))
+
+
+def _numpy_pixels_along(segments, edges, distance, window):
+    """The numpy band walk that ``kernels.edge_runs_kernel`` replaced, kept as its reference."""
+    first = segments[:, 0]
+    unit = (segments[:, 1] - first) / np.linalg.norm(segments[:, 1] - first, axis=1)[:, None]
+    steep = np.abs(unit[:, 1]) > np.abs(unit[:, 0])
+    major_first, minor_first = np.where(steep, first[:, 1], first[:, 0]), np.where(steep, first[:, 0], first[:, 1])
+    major_unit, minor_unit = np.where(steep, unit[:, 1], unit[:, 0]), np.where(steep, unit[:, 0], unit[:, 1])
+    height, width = edges.shape
+    reach = np.linalg.norm(segments[:, 1] - first, axis=1) + window
+    ends = major_first[:, None] + np.stack([np.full_like(reach, -window), reach], axis=1) * major_unit[:, None]
+    lo = np.maximum(np.ceil(ends.min(axis=1)), 0).astype(np.intp)
+    hi = np.minimum(np.floor(ends.max(axis=1)), np.where(steep, height, width) - 1).astype(np.intp)
+    counts = np.maximum(hi - lo + 1, 0)
+    owner = np.repeat(np.arange(len(segments)), counts)
+    major = lo[owner] + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    minor_centre = minor_first[owner] + (major - major_first[owner]) * minor_unit[owner] / major_unit[owner]
+    half = int(distance * np.sqrt(2) + 0.5)
+    minor = np.round(minor_centre).astype(np.intp)[:, None] + np.arange(-half, half + 1)
+    sample_steep = steep[owner][:, None]
+    hit = (minor >= 0) & (minor < np.where(sample_steep, width, height))
+    flat = np.where(sample_steep, major[:, None] * width + minor, minor * width + major[:, None])
+    hit[hit] = edges.ravel()[flat[hit]] > 0
+    rows, columns = np.nonzero(hit)
+    owner, flat = owner[rows], flat[rows, columns]
+    pixels = np.stack([flat % width, flat // width], axis=1).astype(np.float64)
+    offsets = pixels - first[owner]
+    t = (offsets * unit[owner]).sum(axis=1)
+    near = np.abs(offsets[:, 0] * unit[owner, 1] - offsets[:, 1] * unit[owner, 0]) <= distance
+    return owner[near], pixels[near], t[near]
+
+
+def _numpy_refine_once(segments, edges, params, window):
+    """``image_edges._refine_once`` as numpy computed it before ``kernels.edge_runs_kernel``."""
+    n = len(segments)
+    lengths = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
+    owner, pixels, t = _numpy_pixels_along(segments, edges, params.merge_distance, window)
+    owner = np.concatenate([owner, np.arange(n), np.arange(n)])
+    t = np.concatenate([t, np.zeros(n), lengths])
+    virtual = np.arange(len(owner)) >= len(pixels)
+    order = np.lexsort((t, owner))
+    owner, t, virtual = owner[order], t[order], virtual[order]
+    pixels = np.concatenate([pixels, np.zeros((2 * n, 2))])[order]
+    inside = (t >= 0) & (t <= lengths[owner])
+    breaks = (np.diff(owner) != 0) | ((np.diff(t) > params.hough_max_gap) & ~(inside[:-1] & inside[1:]))
+    run = np.concatenate([[0], np.cumsum(breaks)])
+    core = np.zeros(n, dtype=int)
+    core[owner[virtual]] = run[virtual]
+    keep = ~virtual & (run == core[owner])
+    owner, pixels = owner[keep], pixels[keep]
+    fitted = np.flatnonzero(np.bincount(owner, minlength=n) >= 2)
+    centre, axis = _fit_lines(owner, n, pixels, np.ones(len(owner)))
+    first = np.searchsorted(owner, fitted)
+    last = np.searchsorted(owner, fitted, side="right") - 1
+    refined = segments.copy()
+    for end, index in ((0, first), (1, last)):
+        along = ((pixels[index] - centre[fitted]) * axis[fitted]).sum(axis=1)
+        refined[fitted, end] = centre[fitted] + along[:, None] * axis[fitted]
+    return refined
+
+
+def test_refinement_compiled_is_numpys():
+    """A refinement round (``_refine_once``, its pixel walk and fit compiled in
+    ``kernels.edge_runs_kernel``) gives numpy's segments to the bit: random edge maps of
+    lines and scattered pixels, random segments of every direction, most drawn on the map,
+    some partly outside the image, with pixel-centred and half-pixel ends (exact roundings), at several windows."""
+    rng = np.random.default_rng(11)
+    params = EdgeParams()
+    for trial in range(60):
+        height, width = int(rng.integers(20, 200)), int(rng.integers(20, 200))
+        edges = np.where(rng.random((height, width)) < rng.uniform(0.0, 0.08), 255, 0).astype(np.uint8)
+        for _ in range(int(rng.integers(0, 8))):
+            a, b = rng.uniform(-10, [width + 10, height + 10], (2, 2))
+            cv2.line(edges, tuple(int(v) for v in a), tuple(int(v) for v in b), 255, 1)
+        n = int(rng.integers(1, 25))
+        segments = rng.uniform(-15, [width + 15, height + 15], (n, 2, 2))
+        if trial % 3 == 0:
+            segments = np.round(segments * 2) / 2  # ends on pixels and half pixels
+        segments[0] = np.clip(segments[0], 0, [width - 1, height - 1])
+        segments = segments[np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1) > 0]
+        for a, b in segments[: int(rng.integers(1, n + 1))]:  # as Hough's, most on edge pixels
+            cv2.line(edges, tuple(int(v) for v in np.round(a)), tuple(int(v) for v in np.round(b)), 255, 1)
+        for window in (1.0, 7.0, 40.0):
+            ours = _refine_once(segments, edges, params, window)
+            assert ours.tobytes() == _numpy_refine_once(segments, edges, params, window).tobytes()
 
 
 @pytest.mark.parametrize("noise", [4.0, 12.0])

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from ..params import EdgeParams
-from .kernels import connected_labels, median_of_every_other, scaled_int16
+from .kernels import connected_labels, edge_runs_kernel, median_of_every_other, scaled_int16
 
 #: median / scale of a Rayleigh distribution: the gradient magnitude of pure Gaussian noise
 _RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
@@ -415,73 +415,16 @@ def refine_segments(segments: np.ndarray, edges: np.ndarray, params: EdgeParams)
 
 def _refine_once(segments: np.ndarray, edges: np.ndarray, params: EdgeParams, window: float) -> np.ndarray:
     """One round of :func:`refine_segments`, looking ``window`` beyond the ends of segments of non-zero length."""
-    n = len(segments)
-    lengths = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
-    owner, pixels, t = _pixels_along(segments, edges, params.merge_distance, window)
-    # the segment's own span counts as filled: add its two ends as virtual points
-    owner = np.concatenate([owner, np.arange(n), np.arange(n)])
-    t = np.concatenate([t, np.zeros(n), lengths])
-    virtual = np.arange(len(owner)) >= len(pixels)
-    order = np.lexsort((t, owner))
-    owner, t, virtual = owner[order], t[order], virtual[order]
-    pixels = np.concatenate([pixels, np.zeros((2 * n, 2))])[order]
-    inside = (t >= 0) & (t <= lengths[owner])
-    step = np.diff(t)
-    breaks = (np.diff(owner) != 0) | ((step > params.hough_max_gap) & ~(inside[:-1] & inside[1:]))
-    run = np.concatenate([[0], np.cumsum(breaks)])
-    core = np.zeros(n, dtype=int)
-    core[owner[virtual]] = run[virtual]  # both virtual points of a segment share its run
-    keep = ~virtual & (run == core[owner])
-    owner, pixels = owner[keep], pixels[keep]
-
-    fitted = np.flatnonzero(np.bincount(owner, minlength=n) >= 2)
-    centre, axis = _fit_lines(owner, n, pixels, np.ones(len(owner)))
-    first = np.searchsorted(owner, fitted)  # pixels are sorted along each segment
-    last = np.searchsorted(owner, fitted, side="right") - 1
+    count, centre, scatter, ends = edge_runs_kernel(segments, edges, float(params.merge_distance), float(window),
+                                                    float(params.hough_max_gap))
+    angle = 0.5 * np.arctan2(2.0 * scatter[:, 1], scatter[:, 0] - scatter[:, 2])  # as _fit_lines
+    axis = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    fitted = np.flatnonzero(count >= 2)
     refined = segments.copy()
-    for end, index in ((0, first), (1, last)):
-        along = ((pixels[index] - centre[fitted]) * axis[fitted]).sum(axis=1)
+    for end in (0, 1):
+        along = ((ends[fitted, end] - centre[fitted]) * axis[fitted]).sum(axis=1)
         refined[fitted, end] = centre[fitted] + along[:, None] * axis[fitted]
     return refined
-
-
-def _pixels_along(segments: np.ndarray, edges: np.ndarray, distance: float, window: float):
-    """(owner, pixel (x, y), t) of the edge pixels within distance of each segment's line.
-
-    t is the position along the segment from its first end point; pixels are looked for
-    from ``window`` before the first end point to ``window`` after the second. Stepping one
-    pixel along the major axis and a few across it visits every pixel of the band exactly
-    once per segment.
-    """
-    first = segments[:, 0]
-    unit = (segments[:, 1] - first) / np.linalg.norm(segments[:, 1] - first, axis=1)[:, None]
-    steep = np.abs(unit[:, 1]) > np.abs(unit[:, 0])
-    major_first = np.where(steep, first[:, 1], first[:, 0])
-    minor_first = np.where(steep, first[:, 0], first[:, 1])
-    major_unit = np.where(steep, unit[:, 1], unit[:, 0])  # |major_unit| >= 1 / sqrt(2)
-    minor_unit = np.where(steep, unit[:, 0], unit[:, 1])
-    height, width = edges.shape
-    reach = np.linalg.norm(segments[:, 1] - first, axis=1) + window
-    ends = major_first[:, None] + np.stack([np.full_like(reach, -window), reach], axis=1) * major_unit[:, None]
-    lo = np.maximum(np.ceil(ends.min(axis=1)), 0).astype(np.intp)
-    hi = np.minimum(np.floor(ends.max(axis=1)), np.where(steep, height, width) - 1).astype(np.intp)
-    counts = np.maximum(hi - lo + 1, 0)
-    owner = np.repeat(np.arange(len(segments)), counts)
-    major = lo[owner] + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    minor_centre = minor_first[owner] + (major - major_first[owner]) * minor_unit[owner] / major_unit[owner]
-    half = int(distance * np.sqrt(2) + 0.5)  # |major_unit| >= 1/sqrt(2), plus rounding of the centre
-    minor = np.round(minor_centre).astype(np.intp)[:, None] + np.arange(-half, half + 1)
-    sample_steep = steep[owner][:, None]
-    hit = (minor >= 0) & (minor < np.where(sample_steep, width, height))
-    flat = np.where(sample_steep, major[:, None] * width + minor, minor * width + major[:, None])
-    hit[hit] = edges.ravel()[flat[hit]] > 0
-    rows, columns = np.nonzero(hit)
-    owner, flat = owner[rows], flat[rows, columns]
-    pixels = np.stack([flat % width, flat // width], axis=1).astype(np.float64)
-    offsets = pixels - first[owner]
-    t = (offsets * unit[owner]).sum(axis=1)
-    near = np.abs(offsets[:, 0] * unit[owner, 1] - offsets[:, 1] * unit[owner, 0]) <= distance
-    return owner[near], pixels[near], t[near]
 
 
 def _fit_lines(label: np.ndarray, groups: int, points: np.ndarray, weight: np.ndarray,
