@@ -8,8 +8,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from brepose_ros.image_codec import decode_image
-from brepose_ros.online.image_edges import (EdgeParams, _fit_lines, _refine_once, canny_edges, canny_thresholds,
-                                            extract_segments, gradients, merge_segments, to_gray)
+from brepose_ros.online.image_edges import (EdgeParams, _refine_once, canny_edges, canny_thresholds, extract_segments,
+                                            gradients, merge_segments, to_gray)
 from brepose_ros.online.kernels import connected_labels, median_of_every_other, scaled_int16
 
 BACKGROUND = 110.0
@@ -256,7 +256,15 @@ def _numpy_refine_once(segments, edges, params, window):
     keep = ~virtual & (run == core[owner])
     owner, pixels = owner[keep], pixels[keep]
     fitted = np.flatnonzero(np.bincount(owner, minlength=n) >= 2)
-    centre, axis = _fit_lines(owner, n, pixels, np.ones(len(owner)))
+    weight = np.ones(len(owner))  # the least-squares line through each segment's pixels
+    with np.errstate(invalid="ignore", divide="ignore"):
+        centre = np.stack([np.bincount(owner, weight * pixels[:, k], minlength=n) for k in (0, 1)], axis=1)
+        centre /= np.bincount(owner, weight, minlength=n)[:, None]
+    d = pixels - centre[owner]
+    xx, xy, yy = (np.bincount(owner, m, minlength=n)
+                  for m in (weight * d[:, 0] ** 2, weight * d[:, 0] * d[:, 1], weight * d[:, 1] ** 2))
+    angle = 0.5 * np.arctan2(2.0 * xy, xx - yy)
+    axis = np.stack([np.cos(angle), np.sin(angle)], axis=1)
     first = np.searchsorted(owner, fitted)
     last = np.searchsorted(owner, fitted, side="right") - 1
     refined = segments.copy()

@@ -427,25 +427,24 @@ def _refine_once(segments: np.ndarray, edges: np.ndarray, params: EdgeParams, wi
     return refined
 
 
-def _fit_lines(label: np.ndarray, groups: int, points: np.ndarray, weight: np.ndarray,
-               directions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _fit_lines(label: np.ndarray, groups: int, midpoints: np.ndarray, lengths: np.ndarray,
+               directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Centre (groups, 2) and unit direction (groups, 2) of the least-squares line of each group.
 
-    Item k belongs to group label[k]. Without ``directions`` it is a point of the given
-    weight; with them a segment of midpoint ``points[k]``, length ``weight[k]`` and unit
-    direction ``directions[k]``, every point of which counts: that adds l^3 / 12 u u^T to
-    the scatter matrix, so long pieces dominate and short noisy ones barely tilt the line.
+    Segment k, of midpoint ``midpoints[k]``, length ``lengths[k]`` and unit direction
+    ``directions[k]``, belongs to group label[k]; every point of it counts: that adds
+    l^3 / 12 u u^T to the scatter matrix, so long pieces dominate and short noisy ones barely
+    tilt the line. (``kernels.edge_runs_kernel`` fits the refinement's pixels.)
     """
-    total = np.bincount(label, weight, minlength=groups)
+    total = np.bincount(label, lengths, minlength=groups)
     with np.errstate(invalid="ignore", divide="ignore"):  # a group without items gets NaN
-        centre = np.stack([np.bincount(label, weight * points[:, k], minlength=groups) for k in (0, 1)], axis=1)
+        centre = np.stack([np.bincount(label, lengths * midpoints[:, k], minlength=groups) for k in (0, 1)], axis=1)
         centre /= total[:, None]
-    d = points - centre[label]
-    xx, xy, yy = weight * d[:, 0] ** 2, weight * d[:, 0] * d[:, 1], weight * d[:, 1] ** 2
-    if directions is not None:
-        spread = weight**3 / 12.0
-        xx, xy, yy = (xx + spread * directions[:, 0] ** 2, xy + spread * directions[:, 0] * directions[:, 1],
-                      yy + spread * directions[:, 1] ** 2)
+    d = midpoints - centre[label]
+    spread = lengths**3 / 12.0
+    xx = lengths * d[:, 0] ** 2 + spread * directions[:, 0] ** 2
+    xy = lengths * d[:, 0] * d[:, 1] + spread * directions[:, 0] * directions[:, 1]
+    yy = lengths * d[:, 1] ** 2 + spread * directions[:, 1] ** 2
     xx, xy, yy = (np.bincount(label, m, minlength=groups) for m in (xx, xy, yy))
     angle = 0.5 * np.arctan2(2.0 * xy, xx - yy)  # principal axis of the scatter matrix
     return centre, np.stack([np.cos(angle), np.sin(angle)], axis=1)
