@@ -612,15 +612,10 @@ def _nearest_view(R: np.ndarray, t: np.ndarray, view_directions: np.ndarray, mod
     dy = model_center[1] + R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2]
     dz = model_center[2] + R[0, 2] * t[0] + R[1, 2] * t[1] + R[2, 2] * t[2]
     cell = _direction_cell(dx, dy, dz, len(cell_starts) - 1)
+    lo, hi = (cell_starts[cell], cell_starts[cell + 1]) if cell >= 0 else (0, len(view_directions))
     view, most = 0, -np.inf
-    if cell >= 0:
-        for c in range(cell_starts[cell], cell_starts[cell + 1]):
-            v = cell_views[c]
-            product = view_directions[v, 0] * dx + view_directions[v, 1] * dy + view_directions[v, 2] * dz
-            if product > most:
-                view, most = v, product
-        return view
-    for v in range(len(view_directions)):
+    for c in range(lo, hi):
+        v = cell_views[c] if cell >= 0 else c
         product = view_directions[v, 0] * dx + view_directions[v, 1] * dy + view_directions[v, 2] * dz
         if product > most:
             view, most = v, product
@@ -1030,7 +1025,7 @@ def edge_runs_kernel(segments: np.ndarray, edges: np.ndarray, distance: float, w
 
 @njit(nogil=True, cache=True)
 def _pixels_along(segments: np.ndarray, edges: np.ndarray, distance: float, window: float
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(owner, pixel (x, y), t) of the edge pixels within ``distance`` of each segment's line,
     t the position along it from its first end point, by segment, then along the major axis,
     then across. Stepping one pixel along the major axis and a few across it visits every
