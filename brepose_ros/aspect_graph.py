@@ -47,6 +47,7 @@ import numpy as np
 
 from . import __version__
 from .chromaticity import BINS as COLOUR_BINS
+from .geometry import turned_poses
 from .online.kernels import nearest_views_kernel
 from .viewsphere import direction_cells
 
@@ -184,11 +185,9 @@ class AspectGraph:
 
     def symmetric_poses(self, R: np.ndarray, t: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The twins (K, 3, 3), (K, 3) of pose R, t under the discrete symmetries ``which``
-        (indices or a mask): the poses that show the part turned back by each symmetry.
-        With X -> S X + b, pose R, t shows the model where R S^T, t - R S^T b shows it turned."""
-        S, b = self.symmetry_rotations[which], self.symmetry_translations[which]
-        R_twin = R @ S.transpose(0, 2, 1)
-        return R_twin, t - np.einsum("kij,kj->ki", R_twin, b)
+        (indices or a mask): the poses that show the part turned back by each symmetry
+        X -> S X + b (``geometry.turned_poses``)."""
+        return turned_poses(R, t, self.symmetry_rotations[which], self.symmetry_translations[which])
 
     def view_xy(self, i: int) -> np.ndarray:
         """The orthographic view coordinates (n, 2, 2) of view ``i``'s sections, in metres."""

@@ -58,6 +58,13 @@ def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 
+def turned_poses(R: np.ndarray, t: np.ndarray, S: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The poses (K, 3, 3), (K, 3) that show the model turned by X -> S[k] X + b[k] where pose
+    R, t shows it unturned: R S^T, t - R S^T b."""
+    R_turned = R @ S.transpose(0, 2, 1)
+    return R_turned, t - np.einsum("kij,kj->ki", R_turned, b)
+
+
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The smallest rotation taking unit vector ``a`` onto unit vector ``b``."""
     a, b = normalize(a), normalize(b)

@@ -37,7 +37,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..aspect_graph import AspectGraph
-from ..geometry import rotation_about, rotation_angle_deg
+from ..geometry import rotation_about, rotation_angle_deg, turned_poses
 from ..params import PoseParams
 from .frame import Frame
 from .larger import projected_place
@@ -193,8 +193,7 @@ def rolled(twin: Candidate, point: np.ndarray, axis: np.ndarray, graph: AspectGr
     tells the roll of a nearly rotational part is its small odd features (a flange's bolt
     holes), which the line rounds hardly move, while its outline stays put at any roll."""
     turns = np.array([rotation_about(axis, np.radians(angle)) for angle in ROLL_STEPS_DEG])
-    R = twin.R @ turns.transpose(0, 2, 1)  # the model turned about the axis, as ``end_over_end`` turns it
-    t = twin.t - np.einsum("kij,kj->ki", R, point - turns @ point)
+    R, t = turned_poses(twin.R, twin.t, turns, point - turns @ point)  # about the line through ``point``
     scores = pose_scores(graph, R, t, frame, p)
     k = int(np.argmax(scores))
     return Candidate(float(scores[k]), R[k], t[k], twin.hypothesis) if scores[k] > twin.score else twin
