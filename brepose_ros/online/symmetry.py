@@ -173,15 +173,15 @@ def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray
         if np.linalg.norm(across) < 1e-9 * np.linalg.norm(sight):
             continue  # seen along the axis: the outline is a circle, no end is in view
         across /= np.linalg.norm(across)
-        turns = [rotation_about(rotation_about(axis, angle) @ across, np.pi)
-                 for angle in np.pi * np.arange(ACROSS_DIRECTIONS) / ACROSS_DIRECTIONS]
-        first = distinct_turns(graph, np.array(turns), point)
-        for k in np.unique(first):
-            R_twin = R @ turns[k].T  # the model turned by the half turn about the line through ``point``
-            R_twins.append(R_twin)
-            t_twins.append(t - R_twin @ (point - turns[k] @ point))
-            axis_of.append(index)
-            keeps_outline.append(bool(np.isin(k, first[[0, ACROSS_DIRECTIONS // 2]])))
+        turns = np.array([rotation_about(rotation_about(axis, angle) @ across, np.pi)
+                          for angle in np.pi * np.arange(ACROSS_DIRECTIONS) / ACROSS_DIRECTIONS])
+        first = distinct_turns(graph, turns, point)
+        kept = np.unique(first)
+        R_axis, t_axis = turned_poses(R, t, turns[kept], point - turns[kept] @ point)  # about the line through ``point``
+        R_twins.extend(R_axis)
+        t_twins.extend(t_axis)
+        axis_of.extend([index] * len(kept))
+        keeps_outline.extend(np.isin(kept, first[[0, ACROSS_DIRECTIONS // 2]]).tolist())
     return (np.array(R_twins).reshape(-1, 3, 3), np.array(t_twins).reshape(-1, 3),
             np.array(axis_of, dtype=np.int64), np.array(keeps_outline, dtype=bool))
 
