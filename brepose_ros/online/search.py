@@ -75,6 +75,10 @@ DENSE_ROW_SHARE = 8
 #: of points that hit anywhere by chance) by this much, when that asks more than
 #: ``min_coarse_share``: on the LM-O photos the maps are half set and every position passed
 CHANCE_MARGIN = 0.25
+#: the kernel adds a row of cells LANES at a time, a whole number of vector adds (the cells
+#: past a span's end are counted too, never read): 0.91x its CPU on the occluded latency
+#: images against adds that end at the span's end, whose scalar remainder outweighed short spans
+LANES = 8
 #: the kernel's first pass counts the probes on blocks of BLOCK x BLOCK cells: 4 rather than 2
 #: (a quarter of the adds, a little wider spans of cells after it) took 0.88x the kernel's
 #: CPU on the occluded latency images at ``min_coarse_share`` 0.5, the same scores and cells
@@ -104,6 +108,9 @@ class TemplateLibrary:
         #: span / share across (``TemplateSearch.sizes``)
         self.narrowest_span_share = min((_widest_span(self.points[v]) for v in self.coarse_views),
                                         default=self.diameter) / self.diameter
+        #: the farthest template point from the model centre as a share of the diameter: at most
+        #: 0.5 with a graph's own diameter (its bounding box's diagonal), more in a hand-made graph
+        self.reach_share = float(np.hypot(self.points[..., 0], self.points[..., 1]).max(initial=0.0)) / self.diameter
 
 
 def _widest_span(points: np.ndarray) -> float:
@@ -258,25 +265,38 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
     BLOCK x BLOCK blocks of cells (``ResponseMaps.bounds``: a point hits a block if it hits any of
     its cells); cell by cell from the first to the last block of a row where at least
     ``min_share`` of them hit; only cells where at least ``min_share`` of them hit are
-    counted in full (along the whole span where many do, ``DENSE_ROW_SHARE``).
+    counted in full (along the row from the first to the last of them where many do,
+    ``DENSE_ROW_SHARE``).
 
     Only the ``keep`` best templates are ranked (``keep`` 0: all): a template that cannot
     beat the ``keep``-th best so far gets score -1, so its cells are given up early. The
-    ``keep`` best of all templates get the same scores and cells as without the limit."""
+    ``keep`` best of all templates get the same scores and cells as without the limit.
+
+    ``maps`` must be C-contiguous: a point's row of cells is read as a slice of the flat maps."""
     n_templates, k = dx.shape
     h, w = chance.shape[2], chance.shape[3]
     hb, wb = (h + BLOCK - 1) // BLOCK, (w + BLOCK - 1) // BLOCK
     block_acc = np.zeros((hb, wb), np.uint8)  # probes <= 255
-    probe_hits = np.zeros(w, np.uint8)  # of one row of cells
-    hit_counts = np.zeros(w, np.int32)
+    probe_hits = np.zeros(w + LANES, np.uint8)  # of one row of cells, and past its end up to LANES
+    hit_counts = np.zeros(w + LANES, np.int32)
     counts = np.zeros(maps.shape[0], np.float32)
     need = max(1, int(np.ceil(min_share * probes)))
     heap = np.empty(max(keep, 1), np.float64)
     kept = 0
+    cells = maps.reshape(-1)
+    row_length = maps.shape[2]
+    offsets = np.empty(k, np.int64)  # each point's cell in ``cells`` when the template is at cell (0, 0)
     for t in range(n_templates):
         counts[:] = 0
+        lowest, highest = len(cells), 0
         for j in range(k):
             counts[bins[t, j]] += 1
+            offsets[j] = (bins[t, j] * maps.shape[1] + pad + dy[t, j]) * row_length + pad + dx[t, j]
+            lowest, highest = min(lowest, offsets[j]), max(highest, offsets[j])
+        # the rows' reads, LANES - 1 cells past a span's end at most, spill into the next row of the
+        # maps, never past their end: the padding must outreach the templates by one row
+        if lowest < 0 or highest + (h - 1) * row_length + w - 1 + LANES > len(cells):
+            raise ValueError("score_templates: a template reaches past the padded maps")
         block_acc[:, :] = 0
         for j in range(probes):
             b = bins[t, j]
@@ -297,25 +317,36 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
                         lo, hi = min(lo, BLOCK * x), min(BLOCK * (x + 1), w)
             if lo >= hi:
                 continue
-            line, whole = probe_hits[lo:hi], hit_counts[lo:hi]
+            n = (hi - lo + LANES - 1) // LANES * LANES
+            line = probe_hits[lo:lo + n]
             line[:] = 0
+            at = y * row_length + lo
             for j in range(probes):
-                row = maps[bins[t, j], pad + dy[t, j] + y, pad + dx[t, j] + lo:pad + dx[t, j] + hi]
-                for x in range(hi - lo):
+                row = cells[offsets[j] + at:offsets[j] + at + n]
+                for x in range(n):
                     line[x] += row[x]
-            passing = 0
+            passing, first, last = 0, hi, lo  # the cells that pass, the first and the last of them
             for x in range(hi - lo):
-                passing += line[x] >= need
-            # where many cells of a span go on, the rest of the points are counted along it at
-            # once (vectorised adds) rather than cell by cell (scattered reads)
-            dense = passing * DENSE_ROW_SHARE > hi - lo
+                if line[x] >= need:
+                    passing += 1
+                    first = min(first, lo + x)
+                    last = lo + x
+            if passing == 0:
+                continue
+            # where many cells of that stretch go on, the rest of the points are counted along it
+            # at once (vectorised adds) rather than cell by cell (scattered reads)
+            dense = passing * DENSE_ROW_SHARE > last + 1 - first
             if dense:
-                whole[:] = line
+                n = (last + 1 - first + LANES - 1) // LANES * LANES
+                whole, line = hit_counts[first:first + n], probe_hits[first:first + n]
+                for x in range(n):
+                    whole[x] = line[x]
+                at = y * row_length + first
                 for j in range(probes, k):
-                    row = maps[bins[t, j], pad + dy[t, j] + y, pad + dx[t, j] + lo:pad + dx[t, j] + hi]
-                    for x in range(hi - lo):
+                    row = cells[offsets[j] + at:offsets[j] + at + n]
+                    for x in range(n):
                         whole[x] += row[x]
-            for x in range(lo, hi):
+            for x in range(first, last + 1):
                 if probe_hits[x] < need:
                     continue
                 expected = 0.0
@@ -328,10 +359,11 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
                     # counted in chunks of ``probes`` points, given up as soon as even hits on
                     # every point left could not beat the best: the same best, far fewer reads
                     hits = np.int64(probe_hits[x])
+                    at = y * row_length + x
                     j = probes
                     while j < k and hits + (k - j) - expected > best * k:
                         for i in range(j, min(j + probes, k)):
-                            hits += maps[bins[t, i], pad + dy[t, i] + y, pad + dx[t, i] + x]
+                            hits += cells[offsets[i] + at]
                         j += probes
                     if j < k:
                         continue
@@ -452,7 +484,8 @@ class TemplateSearch:
         lib = self.library
         factor = p.coarse_factor
         sizes = self.sizes(frame, p, distances) if sizes is None else sizes
-        pad = int(np.ceil(sizes[-1] / factor / 2)) + p.spread + 1
+        # the maps' padding outreaches every template point by a row (``score_templates``)
+        pad = int(np.ceil(sizes[-1] / factor * max(0.5, lib.reach_share))) + p.spread + 1
         maps = ResponseMaps.of(frame.evidence, factor, p.spread, pad, box, pool)
         chance = maps.chances([max(3, int(round(d / factor)) | 1) for d in sizes], pool)
         dx, dy, bins, view, angle, size, size_index = self._coarse_templates(p.angles, sizes, factor)
