@@ -147,6 +147,37 @@ def test_the_kernel_ranks_its_best_templates_as_counting_everything_does(density
         assert keep == 0 or (score > -1.0).sum() < count  # the limit gave some up
 
 
+def test_the_kernel_refuses_a_template_that_reaches_past_the_padded_maps():
+    """Its rows are read as slices of the flat maps, a few cells past a span's end: a point
+    beyond the padding (the last row of the last bin) would read past the maps' end."""
+    h, w, pad = 12, 16, 3
+    maps = np.zeros((search.BINS, h + 2 * pad, w + 2 * pad), np.uint8)
+    chance = np.zeros((1, search.BINS, h, w), np.float32)
+    bins = np.full((1, 8), search.BINS - 1, np.uint8)
+    for reach, refused in ((pad - 1, False), (pad, True)):
+        dy = np.full((1, 8), reach, np.int16)
+        out = np.zeros(1), np.zeros(1, np.int64), np.zeros(1, np.int64)
+        call = lambda: search.score_templates(maps, search.block_bounds(maps), pad, dy, dy, bins,  # noqa: E731
+                                              np.zeros(1, np.int64), chance, 2, 0.5, 0, *out)
+        if refused:
+            with pytest.raises(ValueError):
+                call()
+        else:
+            call()
+
+
+def test_the_templates_reach_half_the_diameter_of_a_compiled_graph_and_more_of_a_hand_made_one():
+    """A compiled graph's diameter is its bounding box's diagonal, about the box's centre: no
+    point lies farther than half of it. A hand-made graph's may be smaller than its outline
+    (the occluded bracket's test above): the search pads the maps by ``reach_share``."""
+    part = bracket_outline(0.8)
+    lo, hi = part.reshape(-1, 2).min(axis=0), part.reshape(-1, 2).max(axis=0)
+    centred = part - (lo + hi) / 2
+    compiled = search.TemplateLibrary(one_view_graph(centred, diameter=float(np.hypot(*(hi - lo)))), SearchParams())
+    assert 0.4 < compiled.reach_share <= 0.5
+    assert search.TemplateLibrary(one_view_graph(part), SearchParams()).reach_share > 0.5
+
+
 def test_a_view_seen_edge_on_is_not_a_start_of_the_search():
     """Points all of one direction (a plate seen edge-on) fit any pair of straight image
     edges: such a view is left to the refinement's view climb, a bracket's view is kept."""
