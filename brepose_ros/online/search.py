@@ -272,11 +272,14 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
     beat the ``keep``-th best so far gets score -1, so its cells are given up early. The
     ``keep`` best of all templates get the same scores and cells as without the limit.
 
-    ``maps`` must be C-contiguous: a point's row of cells is read as a slice of the flat maps."""
+    ``maps`` and ``bounds`` must be C-contiguous: a point's rows are read as slices of them, flat."""
     n_templates, k = dx.shape
     h, w = chance.shape[2], chance.shape[3]
     hb, wb = (h + BLOCK - 1) // BLOCK, (w + BLOCK - 1) // BLOCK
-    block_acc = np.zeros((hb, wb), np.uint8)  # probes <= 255
+    blocks = bounds.reshape(-1)
+    block_row, block_plane = bounds.shape[4], bounds.shape[3] * bounds.shape[4]
+    block_acc = np.zeros((hb, block_row), np.uint8)  # probes <= 255; the first wb of each row are the blocks'
+    block_run = block_acc.reshape(-1)[:(hb - 1) * block_row + wb]
     probe_hits = np.zeros(w + LANES, np.uint8)  # of one row of cells, and past its end up to LANES
     hit_counts = np.zeros(w + LANES, np.int32)
     counts = np.zeros(maps.shape[0], np.float32)
@@ -297,15 +300,17 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
         # maps, never past their end: the padding must outreach the templates by one row
         if lowest < 0 or highest + (h - 1) * row_length + w - 1 + LANES > len(cells):
             raise ValueError("score_templates: a template reaches past the padded maps")
+        # the block pass: each probe's hb rows of wb blocks are read as one run of the flat bounds,
+        # the blocks between a row's end and the next row's start counted too, never read
         block_acc[:, :] = 0
         for j in range(probes):
             b = bins[t, j]
             oy, ox = pad + dy[t, j], pad + dx[t, j]
-            for y in range(hb):
-                row = bounds[oy % BLOCK, ox % BLOCK, b, oy // BLOCK + y, ox // BLOCK:ox // BLOCK + wb]
-                line = block_acc[y]
-                for x in range(wb):
-                    line[x] += row[x]
+            at = (((oy % BLOCK) * BLOCK + ox % BLOCK) * bounds.shape[2] + b) * block_plane \
+                + (oy // BLOCK) * block_row + ox // BLOCK
+            row = blocks[at:at + len(block_run)]
+            for x in range(len(block_run)):
+                block_run[x] += row[x]
         s = size_index[t]
         best = heap[0] if 0 < keep == kept else -1.0
         by, bx = -1, -1
