@@ -29,7 +29,8 @@ Steps, per image:
    (``workers.WorkerPool``). A first pass counts a quarter of the points (``PROBE_STRIDE``)
    on blocks of 4 x 4 cells (``BLOCK``), then cell by cell between the first and the last block of a
    row where they hit often enough (``probe_share``); the rest of the points only at
-   cells where those do (along the span at once where many do), or else a
+   cells where those do (along the row from the first to the last of them at once where
+   many do), or else a
    quarter at a time, and no further once the cell cannot beat the template's best or the
    ``ranked_templates``-th best template so far (which the stages never reach down to).
 4. The best distinct templates become ``Hypothesis`` objects on the virtual camera through
@@ -343,9 +344,9 @@ def score_templates(maps, bounds, pad, dx, dy, bins, size_index, chance, probes,
             dense = passing * DENSE_ROW_SHARE > last + 1 - first
             if dense:
                 n = (last + 1 - first + LANES - 1) // LANES * LANES
-                whole, line = hit_counts[first:first + n], probe_hits[first:first + n]
+                whole, counted = hit_counts[first:first + n], probe_hits[first:first + n]
                 for x in range(n):
-                    whole[x] = line[x]
+                    whole[x] = counted[x]
                 at = y * row_length + first
                 for j in range(probes, k):
                     row = cells[offsets[j] + at:offsets[j] + at + n]
