@@ -710,8 +710,8 @@ def align_on_edges_kernel(R: np.ndarray, t: np.ndarray, radii: np.ndarray, view_
     ``pixels`` (L, 2), ``EdgeEvidence.nearest_like``, reaching every radius) within the
     radius, the line through that pixel along the model edge (``undistort_point``), then
     ``iterations`` Gauss-Newton steps with Huber at half the radius, each pair weighted by
-    its segment's ``seg_weights``. A pose behind the camera, or pairing fewer than
-    ``min_points``, stops for good. normal_out (B, 6, 6) and
+    its segment's ``seg_weights``. A pose behind the camera or with a visible edge at or
+    behind the camera's plane, or pairing fewer than ``min_points``, stops for good. normal_out (B, 6, 6) and
     variance_out (B,) as ``refine_poses_kernel``'s. One call per chunk of poses, GIL
     released: as numpy it was some thirty array steps per pairing, holding the GIL.
     """
@@ -730,15 +730,22 @@ def align_on_edges_kernel(R: np.ndarray, t: np.ndarray, radii: np.ndarray, view_
             # the points of every segment first, to size the arrays of the pairs
             ends = np.empty((hi - lo, 2, 2))
             counts = np.empty(hi - lo, np.int64)
+            crossing = False
             for s in range(hi - lo):
                 for e in range(2):
                     px, py, pz = seg_3d[lo + s, e, 0], seg_3d[lo + s, e, 1], seg_3d[lo + s, e, 2]
+                    z = R[b, 2, 0] * px + R[b, 2, 1] * py + R[b, 2, 2] * pz + t[b, 2]
+                    crossing |= not z > 0
                     ends[s, e, 0], ends[s, e, 1] = project_point(
                         R[b, 0, 0] * px + R[b, 0, 1] * py + R[b, 0, 2] * pz + t[b, 0],
-                        R[b, 1, 0] * px + R[b, 1, 1] * py + R[b, 1, 2] * pz + t[b, 1],
-                        R[b, 2, 0] * px + R[b, 2, 1] * py + R[b, 2, 2] * pz + t[b, 2], intrinsics, distortion)
+                        R[b, 1, 0] * px + R[b, 1, 1] * py + R[b, 1, 2] * pz + t[b, 1], z, intrinsics, distortion)
                 dx, dy = ends[s, 1, 0] - ends[s, 0, 0], ends[s, 1, 1] - ends[s, 0, 1]
                 counts[s] = max(int(max(math.hypot(dx, dy), 1e-12) // spacing), 1)
+            # an edge reaching the camera's plane projects through infinity: billions of points
+            # to pair (a wild hypothesis 33 mm deep, 4 m aside, asked 49 GB); such a pose is
+            # as lost as one behind the camera
+            if crossing:
+                break
             total = counts.sum()
             points = np.empty((total, 3))
             lines = np.empty((total, 3))

@@ -210,7 +210,8 @@ def align_on_edges(R: np.ndarray, t: np.ndarray, graph: AspectGraph, frame: Fram
     ``EDGE_ITERATIONS`` Gauss-Newton steps per pairing. Every projected edge speaks, where
     the line refinement only hears edges the line detector found (6-12 on the rounded
     bracket, whose arcs and holes give no Hough lines). A pose with fewer than
-    ``MIN_EDGE_POINTS`` pairs, or behind the camera, stops where it is. All in one compiled
+    ``MIN_EDGE_POINTS`` pairs, behind the camera or with a visible edge reaching the
+    camera's plane, stops where it is. All in one compiled
     call (``kernels.align_on_edges_kernel``, GIL released), each pose alone: as numpy array
     steps per pairing it was the refinement's largest share and held the GIL.
     ``covariance_out`` (B, 6, 6) receives each pose's covariance of its last step
