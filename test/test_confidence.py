@@ -263,6 +263,30 @@ def test_the_trusted_rule_reaches_its_precision_on_the_estimates_it_is_chosen_am
     assert outcomes.rule(0.55, level)[2] == pytest.approx(4 / 6)  # the look-alikes' poses still pass it
 
 
+def test_the_bench_pools_records_files_and_writes_them_one_estimate_a_line(tmp_path, capsys):
+    """bench/confidence.py --from-records with two files judges their estimates pooled, as one
+    file holding both; --records writes the pooled estimates back, one a line."""
+    import json
+    from pathlib import Path
+    from bench.confidence import main
+
+    stored = json.loads((Path(__file__).resolve().parents[1] / "docs/results/confidence_records.json").read_text())
+    parts = ["sharp_bracket", "base_attachment"]
+    mine = [r for r in stored if r["owner"] in parts and r["part"] in parts]
+    files = [tmp_path / "first.json", tmp_path / "second.json", tmp_path / "both.json"]
+    for path, records in zip(files, (mine[:50], mine[50:], mine)):
+        path.write_text(json.dumps(records))
+    common = ["--parts", *parts, "--calibration", str(shipped_path()), "--plot", str(tmp_path / "scores.png"),
+              "--confidence-plot", str(tmp_path / "rules.png")]
+    assert main(["--from-records", str(files[2]), *common]) == 0
+    alone = capsys.readouterr().out
+    pooled = tmp_path / "pooled.json"
+    assert main(["--from-records", str(files[0]), str(files[1]), "--records", str(pooled), *common]) == 0
+    assert capsys.readouterr().out == alone
+    assert json.loads(pooled.read_text()) == mine
+    assert len(pooled.read_text().splitlines()) == len(mine) + 2
+
+
 def test_the_bench_judges_a_given_calibration_without_fitting_one(tmp_path, capsys):
     """bench/confidence.py --calibration: the found and trusted rules of the shipped file on
     stored estimates, as choose_rule and choose_rule_at give them; no calibration is written."""
