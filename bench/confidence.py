@@ -2,7 +2,7 @@
 against the score, the fitted confidence, and the found rule chosen on them.
 
     python bench/confidence.py [--n 8] [--parts sharp_bracket rounded_bracket ...] [--check-parts shaft ...]
-                               [--params FILE.yaml] [--records FILE.json | --from-records FILE.json]
+                               [--params FILE.yaml] [--records FILE.json | --from-records FILE.json ...]
                                [--fit brepose_ros/confidence.yaml | --calibration brepose_ros/confidence.yaml]
                                [--confidence-plot docs/figures/found_rule.png]
 
