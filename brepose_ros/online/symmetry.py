@@ -177,7 +177,8 @@ def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray
                           for angle in np.pi * np.arange(ACROSS_DIRECTIONS) / ACROSS_DIRECTIONS])
         first = distinct_turns(graph, turns, point)
         kept = np.unique(first)
-        R_axis, t_axis = turned_poses(R, t, turns[kept], point - turns[kept] @ point)  # about the line through ``point``
+        # each turn about the line through ``point``: X -> turn X + (point - turn point)
+        R_axis, t_axis = turned_poses(R, t, turns[kept], point - turns[kept] @ point)
         R_twins.extend(R_axis)
         t_twins.extend(t_axis)
         axis_of.extend([index] * len(kept))
