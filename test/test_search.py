@@ -147,6 +147,36 @@ def test_the_kernel_ranks_its_best_templates_as_counting_everything_does(density
         assert keep == 0 or (score > -1.0).sum() < count  # the limit gave some up
 
 
+@pytest.mark.parametrize("density", [0.03, 0.4])
+def test_chunks_ranked_again_give_one_calls_output(density):
+    """Templates scored in consecutive chunks (one a worker thread), each ranking against its
+    own best so far, then ``rank_as_one_call``: the scores and cells of one call, to the bit,
+    whatever the chunks; the chunks alone scored more templates than one call."""
+    rng = np.random.default_rng(2)
+    h, w, pad, k, count, keep = 30, 40, 6, 24, 90, 5
+    maps = np.zeros((search.BINS, h + 2 * pad, w + 2 * pad), np.uint8)
+    maps[:, pad:pad + h, pad:pad + w] = rng.random((search.BINS, h, w)) < density
+    dx, dy = (rng.integers(-pad + 1, pad - 1, (count, k)).astype(np.int16) for _ in range(2))
+    bins = rng.integers(0, search.BINS, (count, k)).astype(np.uint8)
+    chance = rng.uniform(0, density, (1, search.BINS, h, w)).astype(np.float32)
+
+    def scored(bounds: list[int]) -> tuple[np.ndarray, ...]:
+        out = np.zeros(count), np.zeros(count, np.int64), np.zeros(count, np.int64)
+        for lo, hi in zip(bounds[:-1], bounds[1:]):
+            search.score_templates(maps, search.block_bounds(maps), pad, dx[lo:hi], dy[lo:hi], bins[lo:hi],
+                                   np.zeros(hi - lo, np.int64), chance, k // 4, 0.3, keep,
+                                   *(a[lo:hi] for a in out))
+        return out
+
+    one = scored([0, count])
+    for bounds in ([0, 45, count], [0, 7, 30, 31, 80, count]):
+        chunked = scored(bounds)
+        assert (chunked[0] > -1.0).sum() > (one[0] > -1.0).sum()
+        search.rank_as_one_call(keep, *chunked)
+        for a, b in zip(one, chunked):
+            assert np.array_equal(a, b)
+
+
 def test_the_kernel_refuses_a_template_that_reaches_past_the_padded_maps():
     """Its rows are read as slices of the flat maps, a few cells past a span's end: a point
     beyond the padding (the last row of the last bin) would read past the maps' end."""
