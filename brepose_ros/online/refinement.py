@@ -228,7 +228,7 @@ def align_on_edges(R: np.ndarray, t: np.ndarray, graph: AspectGraph, frame: Fram
         distortion[:len(camera.dist_coeffs)] = camera.dist_coeffs
     normal, variance = np.zeros((len(R), 6, 6)), np.full(len(R), np.nan)
     align_on_edges_kernel(R, t, radii, graph.view_directions, graph.model_center, *graph.view_cells, graph.seg_offsets,
-                          graph.seg_3d, EDGE_KIND_WEIGHTS[graph.seg_kind],
+                          graph.seg_3d, graph.seg_kind, EDGE_KIND_WEIGHTS,
                           np.array([camera.fx, camera.fy, camera.cx, camera.cy]), distortion, *nearest,
                           EDGE_SPACING_PIXELS, MIN_EDGE_POINTS, EDGE_ITERATIONS, normal, variance)
     if covariance_out is not None:
