@@ -26,8 +26,9 @@ Steps, per image:
    view (``TemplateLibrary.coarse_views``, the graph views nearest a sparser golden
    spiral) x in-plane angle x size, at every coarse cell; each template keeps its best
    position. A chunk of templates is one call, so threads share the templates
-   (``workers.WorkerPool``). A first pass counts a quarter of the points (``PROBE_STRIDE``)
-   on blocks of 4 x 4 cells (``BLOCK``), then cell by cell between the first and the last block of a
+   (``workers.WorkerPool``), and the chunks' output is ranked again as one call's
+   (``rank_as_one_call``): the same templates whatever the number of threads. A first pass
+   counts a quarter of the points (``PROBE_STRIDE``) on blocks of 4 x 4 cells (``BLOCK``), then cell by cell between the first and the last block of a
    row where they hit often enough (``probe_share``); the rest of the points only at
    cells where those do (along the row from the first to the last of them at once where
    many do), or else a
