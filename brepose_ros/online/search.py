@@ -28,12 +28,14 @@ Steps, per image:
    position. A chunk of templates is one call, so threads share the templates
    (``workers.WorkerPool``), and the chunks' output is ranked again as one call's
    (``rank_as_one_call``): the same templates whatever the number of threads. A first pass
-   counts a quarter of the points (``PROBE_STRIDE``) on blocks of 4 x 4 cells (``BLOCK``), then cell by cell between the first and the last block of a
-   row where they hit often enough (``probe_share``); the rest of the points only at
-   cells where those do (along the row from the first to the last of them at once where
-   many do), or else a
-   quarter at a time, and no further once the cell cannot beat the template's best or the
-   ``ranked_templates``-th best template so far (which the stages never reach down to).
+   counts a quarter of the points (``PROBE_STRIDE``) on blocks of 4 x 4 cells (``BLOCK``),
+   then cell by cell between the first and the last block of a row where they hit often
+   enough (``probe_share``); the rest of the points only at cells where those do (along
+   the row from the first to the last of them at once where many do), or else a quarter
+   at a time, and no further once the cell cannot beat the template's best or the
+   ``ranked_templates``-th best template so far (the seeds and hypotheses lie among the
+   ranked; the windows' distinct places can reach past them: on the clean latency image 3,
+   split between two threads before ``rank_as_one_call``, to templates one call gave up).
 4. The best distinct templates become ``Hypothesis`` objects on the virtual camera through
    their centre (``camera.virtual_alignment``): the refinement (``refinement``) turns them
    into metric poses, pulls them onto the image lines, climbs over the graph's views and
