@@ -185,16 +185,19 @@ def test_the_polish_pulls_a_pose_three_percent_too_far_onto_the_edge_pixels():
     assert rotation_angle_deg(R, R_true) < 0.5  # from 1 degree (measured 0.4)
 
 
-def test_a_pose_whose_edges_reach_the_camera_plane_stops_where_it_is():
+@pytest.mark.parametrize("behind", [1e-9, 0.0])
+def test_a_pose_whose_edges_reach_the_camera_plane_stops_where_it_is(behind):
     """A wild start (the cube 4 m aside with an edge a nanometre behind the camera's plane,
-    its centre in front) projects that edge through infinity: the edge alignment leaves it
-    where it is instead of asking for some 10^12 points to pair (a MemoryError before)."""
+    or exactly on it, its centre in front) projects that edge through infinity: the edge
+    alignment leaves it where it is instead of asking for some 10^12 points to pair (a
+    MemoryError before) or dividing by a depth of 0."""
     camera = Camera(fx=600.0, fy=600.0, cx=319.5, cy=239.5, width=640, height=480)
     R_true, t_true = cv2.Rodrigues(np.array([0.5, -0.6, 0.3]))[0], np.array([0.01, -0.005, 0.3])
     image, segments = cube_image(camera, R_true, t_true)
     frame = Frame.of(detect_edges(image, EdgeParams()), camera)
-    R0, t0 = np.eye(3), np.array([2.5, -3.7, 0.02 - 1e-9])
-    assert (segments[..., 2] + t0[2]).min() < 0 < R0[2] @ np.zeros(3) + t0[2]
+    R0, t0 = np.eye(3), np.array([2.5, -3.7, -segments[..., 2].min() - behind])
+    nearest_end = (segments[..., 2] + t0[2]).min()
+    assert (nearest_end < 0 if behind else nearest_end == 0) and t0[2] > 0  # the cube's centre in front
     R, t = refinement.align_on_edges(R0[None], t0[None], one_view_graph(np.zeros((len(segments), 2, 2)), segments),
                                      frame, radii=np.full((1, 2), 2.0))
     assert np.array_equal(R[0], R0) and np.array_equal(t[0], t0)

@@ -738,10 +738,14 @@ def align_on_edges_kernel(R: np.ndarray, t: np.ndarray, radii: np.ndarray, view_
                 for e in range(2):
                     px, py, pz = seg_3d[lo + s, e, 0], seg_3d[lo + s, e, 1], seg_3d[lo + s, e, 2]
                     z = R[b, 2, 0] * px + R[b, 2, 1] * py + R[b, 2, 2] * pz + t[b, 2]
-                    crossing |= not z > 0
+                    if not z > 0:  # not projected: at z 0 the division would raise
+                        crossing = True
+                        break
                     ends[s, e, 0], ends[s, e, 1] = project_point(
                         R[b, 0, 0] * px + R[b, 0, 1] * py + R[b, 0, 2] * pz + t[b, 0],
                         R[b, 1, 0] * px + R[b, 1, 1] * py + R[b, 1, 2] * pz + t[b, 1], z, intrinsics, distortion)
+                if crossing:
+                    break
                 dx, dy = ends[s, 1, 0] - ends[s, 0, 0], ends[s, 1, 1] - ends[s, 0, 1]
                 counts[s] = max(int(max(math.hypot(dx, dy), 1e-12) // spacing), 1)
             # an edge reaching the camera's plane projects through infinity: billions of points
