@@ -24,3 +24,16 @@ def test_a_grown_bench_scene_keeps_its_first_images_and_leaves_no_side_folders(t
     again = scene(tmp_path, "part", sample_step, "clean", 3, distractors=[])
     assert again.entries[0].path.read_bytes() == before
     assert sorted(p.name for p in again.folder.parent.iterdir()) == [again.folder.name, again.folder.name + ".lock"]
+
+
+def test_the_look_split_bins_sizes_in_order_and_pools_by_condition():
+    from bench.by_look import size_level, split
+
+    levels = [size_level(s) for s in (0.05, 0.15, 0.3, 0.9)]
+    assert levels == sorted(levels) == ["0.00-0.15", "0.15-0.25", "0.25-0.40", "0.40+"]
+    look = {"background": "grid", "motion": 0.0, "key_light": 0.9}
+    records = [{"condition": c, "right": r, "look": look, "size": 0.3} for c, r in
+               (("clean", True), ("clean", False), ("clutter", True))]
+    table = split(records)
+    assert table["background"]["grid"]["clean"] == [True, False]
+    assert table["motion blur"]["none"]["clutter"] == [True]
