@@ -76,11 +76,28 @@ def scored_tolerances(graph: AspectGraph, p: PoseParams) -> tuple[float, ...]:
 
 
 def look_up_tolerances(inlier_px: float, outline_px: float | None, seen_px: float) -> tuple[float, ...]:
-    """The maps' tolerances a score reads, pixels, in their layers' order: the look-up
-    tolerance, the outlines' own where there are outlines (``outline_px`` not None) and it
-    differs, the seen cells' where it is wider than the look-up."""
-    outline = () if outline_px is None or outline_px == inlier_px else (float(outline_px),)
-    return (float(inlier_px),) + outline + ((float(seen_px),) if seen_px > inlier_px else ())
+    """The maps' tolerances a score reads, pixels, in their layers' order (``LookUp``)."""
+    return LookUp.of(inlier_px, outline_px, seen_px).tolerances
+
+
+@dataclass(frozen=True)
+class LookUp:
+    """The tolerances a score reads, pixels, in their layers' order, and which layer each
+    reader takes: the look-up tolerance first; the outlines' own where there are outlines
+    (``outline_px`` not None) and it differs, read by soft edges (else they read layer 0);
+    the seen cells' where it is wider than the look-up (else ``seen_layer`` is -1 and cells
+    are seen at the look-up tolerances alone)."""
+
+    tolerances: tuple[float, ...]
+    outline_layer: int
+    seen_layer: int
+
+    @classmethod
+    def of(cls, inlier_px: float, outline_px: float | None, seen_px: float) -> "LookUp":
+        outline = () if outline_px is None or outline_px == inlier_px else (float(outline_px),)
+        seen = (float(seen_px),) if seen_px > inlier_px else ()
+        tolerances = (float(inlier_px),) + outline + seen
+        return cls(tolerances, len(outline), len(tolerances) - 1 if seen else -1)
 
 
 def visible_rows(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -589,18 +606,16 @@ class EdgeEvidence:
         ``min_size_px``; the counted pixels marked in ``labels`` if given (``counted_pixels``)."""
         model_px = np.ascontiguousarray(model_px, np.float64).reshape(-1, 2, 2)
         outline_px = soft_tolerance_px if soft is not None and np.any(soft) else None
-        tolerances = look_up_tolerances(tolerance_px, outline_px, seen_tolerance_px)
-        # soft edges read layer 1 where the outlines have a tolerance of their own, else layer 0
-        apart = outline_px is not None and outline_px != tolerance_px
-        reach_of = np.asarray(soft, np.int64) if apart else np.zeros(len(model_px), np.int64)
-        wide = seen_tolerance_px > tolerance_px  # else cells seen at the look-up tolerances alone
-        maps, layers = self._holding(tolerances)
+        look_up = LookUp.of(tolerance_px, outline_px, seen_tolerance_px)
+        reach_of = (np.asarray(soft, np.int64) * look_up.outline_layer if soft is not None
+                    else np.zeros(len(model_px), np.int64))
+        maps, layers = self._holding(look_up.tolerances)
         spans = np.asarray(spans, np.int64)
         sums, run_on = np.zeros((len(spans) - 1, 5)), np.zeros((len(spans) - 1, 3))
         pose_evidence_kernel(model_px, layers[reach_of], spans, float(min_size_px), maps.near, maps.chance,
                              maps.window, self.row_starts, self.columns, np.array(maps.tolerances),
                              float(min_margin_px), self.OUTLINE_MARGIN, self.SEEN_CELL, self.SEEN_REACH,
-                             int(layers[-1]) if wide else -1, sums,
+                             int(layers[look_up.seen_layer]) if look_up.seen_layer >= 0 else -1, sums,
                              np.zeros((0, 0), np.uint8) if labels is None else labels)
         # probes within a pixel beyond the look-up tolerance of another model edge are that edge's
         run_on_kernel(model_px, spans, maps.near, maps.chance, maps.window, *self.RUN_ON_PROBE,
