@@ -1,6 +1,7 @@
 """Generated scenes: exact and reproducible ground truth, measured occlusion, strict loader."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -11,7 +12,7 @@ import pytest
 from brepose_ros.offline.cad import load_step, tessellate
 from brepose_ros.cli import render as render_cli
 from brepose_ros.synthetic.render import Placed, rasterize
-from brepose_ros.synthetic.scenes import SceneConfig, generate_scene
+from brepose_ros.synthetic.scenes import SceneConfig, generate_scene, render_image
 from brepose_ros.scene_folder import SceneError, load_scene
 
 SMALL = dict(width=320, height=240, fx=300.0)
@@ -159,6 +160,28 @@ def test_varied_look_is_the_same_for_the_same_seed(varied, sample_step, tmp_path
     assert json.loads((again.folder / "gt.json").read_text()) == json.loads((varied.folder / "gt.json").read_text())[:2]
     for name in ("images/000000.png", "images/000001.png", "masks/000001.png"):
         assert (again.folder / name).read_bytes() == (varied.folder / name).read_bytes()
+
+
+def test_an_image_is_rendered_again_with_one_look_factor_changed(varied, sample_step):
+    """render_image redraws a scene's image to the byte; with its look changed the pose and
+    the rest of the look stay: without blur and noise, a horizontal motion blur of 9 px is
+    the sharp image under a 9 px horizontal box, everything else the same."""
+    from brepose_ros.synthetic.props import box_mesh
+
+    part = load_step(sample_step)
+    mesh, config, distractors = tessellate(part), SceneConfig(**VARIED, occlusion=0.4), [box_mesh(0.04, 0.04, 0.04)]
+    image, _, R, t, _, record = render_image(mesh, part.center, config, 4, 1, distractors)
+    assert image.tobytes() == cv2.imread(str(varied.entries[1].path), cv2.IMREAD_UNCHANGED).tobytes()
+
+    def rendered(motion, angle):
+        return render_image(mesh, part.center, config, 4, 1, distractors, lambda look: dataclasses.replace(
+            look, blur=0.0, noise=0.0, motion=motion, motion_angle=angle))
+
+    sharp, (smeared, _, R2, t2, _, record2) = rendered(0.0, 0.0)[0].astype(float), rendered(9.0, 0.0)
+    assert np.array_equal(R, R2) and np.array_equal(t, t2)
+    assert record2 == record | {"blur": 0.0, "noise": 0.0, "motion": 9.0}
+    along, across = (cv2.blur(sharp, size, borderType=cv2.BORDER_REFLECT) for size in ((9, 1), (1, 9)))
+    assert np.abs(smeared - along).mean() < 0.5 < 2.0 < np.abs(smeared - across).mean()
 
 
 def test_look_changes_the_image_not_the_pose(sample_step, tmp_path):

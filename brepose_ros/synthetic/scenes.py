@@ -16,7 +16,7 @@ import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -26,7 +26,7 @@ from ..camera import Camera
 from ..geometry import look_at_rotation, normalize, random_rotation, rot_z
 from ..offline.cad import Mesh, load_step, tessellate
 from ..scene_folder import GroundTruth, Scene, SceneError
-from .looks import background, camera_effects, random_look
+from .looks import Look, background, camera_effects, random_look
 from .props import COMPACT, ELONGATED, KINDS, box_mesh, cylinder_mesh, stretched, unit_prop
 from .render import Lighting, Material, Placed, rasterize, render
 
@@ -92,9 +92,7 @@ def generate_scene(step: str | Path, folder: str | Path, n: int, seed: int = 0,
     shutil.copyfile(step, folder / "model.step")
     records, entries = [], []
     for i in tqdm(range(n), desc="rendering", disable=not progress):
-        rng = np.random.default_rng([seed, i])
-        image, mask, R, t, visible, look = _render_view(rng, mesh, part.center, camera, config,
-                                                        tuple(distractors))
+        image, mask, R, t, visible, look = render_image(mesh, part.center, config, seed, i, distractors)
         name = f"images/{i:06d}.png"
         cv2.imwrite(str(folder / name), image)
         cv2.imwrite(str(folder / f"masks/{i:06d}.png"), mask.astype(np.uint8) * 255)
@@ -109,13 +107,19 @@ def generate_scene(step: str | Path, folder: str | Path, n: int, seed: int = 0,
     return Scene(folder, camera, folder / "model.step", entries)
 
 
-def _render_view(rng: np.random.Generator, mesh: Mesh, center: np.ndarray, camera: Camera,
-                 config: SceneConfig, distractors: tuple[Mesh, ...]):
-    """One noisy image, the part's visible mask, its pose, its visible share and what the
-    varied look drew (an empty dict for the plain look)."""
+def render_image(mesh: Mesh, center: np.ndarray, config: SceneConfig, seed: int, index: int,
+                 distractors: Sequence[Mesh] = (), change_look: Callable[[Look], Look] | None = None):
+    """Image ``index`` of the scene of ``seed`` as :func:`generate_scene` renders it: the noisy
+    image, the part's visible mask, its pose, its visible share and what the varied look drew
+    (an empty dict for the plain look). ``change_look`` alters the varied look after it is
+    drawn: the pose, lights, props and noise stay those of the scene, so one look factor
+    (e.g. the motion blur, bench/motion_pairs.py) can be tested on the very same image."""
+    rng, camera, distractors = np.random.default_rng([seed, index]), config.camera(), tuple(distractors)
     R, t = _sample_pose(rng, mesh, center, camera, config)
     varied = config.look == "varied"
     look = random_look(rng, config.blur, config.noise, config.color) if varied else None
+    if varied and change_look is not None:
+        look = change_look(look)
     kinds = (KINDS + ("part",) * bool(distractors)) if varied else PROPS
     part = Placed(mesh, R, t, look.material) if varied else Placed(mesh, R, t)
     alone = rasterize(camera, [part])
