@@ -225,7 +225,7 @@ class PoseParams(Ranged):
 
 
 #: the hypothesis generators (``search.generators`` joins them with '+', run in that order)
-GENERATORS = ("tetrad", "search", "seeded", "windows")
+GENERATORS = ("tetrad", "search", "seeded", "windows", "small")
 
 
 @dataclass(frozen=True)
@@ -237,12 +237,14 @@ class SearchParams(Ranged):
         "hypothesis generators, joined by '+' and run in that order: 'tetrad' (regions + bipartite matching), "
         "'search' (templates slid over the image, no region normalised), 'seeded' (the search's best templates "
         "as seeds of the bipartite matching, each normalised in its own frame), 'windows' (the tetrad generator on "
-        "windows about the search's best places instead of the whole image and clusters); 'both' is "
+        "windows about the search's best places instead of the whole image and clusters), 'small' (templates below "
+        "min_size_fraction's size slid only over patches of edges that narrow, a cluster or the whole image's, at "
+        "the sizes the patch allows, seeding the matching as 'seeded' does: a part far from the camera); 'both' is "
         "'search+tetrad'. A "
         "generator after the first runs only while the best pose so far, climbed and polished, scores below "
         "search.enough_score. Default: "
-        "'tetrad+windows+seeded' (docs/results/search.md: clutter 0.21 -> 0.46 tune, 0.04 -> 0.10 leave-out, at "
-        "about 8x the time)", "tetrad+windows+seeded")
+        "'tetrad+windows+seeded+small' (docs/results/search.md: clutter 0.21 -> 0.46 tune, 0.04 -> 0.10 leave-out, "
+        "at about 8x the time; 'small': docs/results/small.md)", "tetrad+windows+seeded+small")
     coarse_factor: int = doc("the search's coarse grid: one cell per this many pixels", 4, 1, 16)
     spread: int = doc("cells a template point may miss its edge by on the coarse grid", 1, 0, 4)
     template_points: int = doc("points per template, sampled evenly along a view's edges", 48, 8, 256)

@@ -16,7 +16,9 @@ Each stage lives in its own module; this one only wires them:
    image's gradient directions, no region normalised; ``seeded``: the search's best
    templates each matched by Kuhn-Munkres to the segments around it, normalised in the
    template's own frame (``TetradHypotheses.at_seeds``); ``windows``: the tetrad generator
-   on windows about the search's best places instead of the whole image and clusters
+   on windows about the search's best places instead of the whole image and clusters;
+   ``small`` (``small``): templates smaller than the search's, slid only over patches of
+   edges that narrow, seeding the matching as ``seeded`` does
 4. ``refinement``: a first metric pose per hypothesis, refined on the image lines and
    scored on the edge pixels (``scoring``); the best few climbed over neighbouring views and
    polished on the edge pixels (the finalists), of which ``symmetry.check_rivals`` keeps the
@@ -65,6 +67,7 @@ from .colour_regions import colour_regions
 from .confidence import load_calibration
 from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_shares, scored_tolerances
 from .search import TemplateSearch
+from .small import small_part_seeds
 from .symmetry import check_rivals, check_twins
 from .workers import WorkerPool, keep_freed_memory, resolve_workers
 
@@ -287,7 +290,7 @@ class Estimator:
                 if settled and settled[0].score >= p.search.enough_score:
                     return settled, settled[0]
                 candidates = candidates + settled
-            if stage != "tetrad" and coarse is None:
+            if stage in ("search", "seeded", "windows") and coarse is None:
                 coarse = search.coarse(frame, p.search, pool, distances=p.pose.distances)
                 clock = _lap(timings, "search", clock)
             if stage == "search":
@@ -300,8 +303,10 @@ class Estimator:
                 windows = [segments_within(frame, center, p.search.seed_window * size / 2)
                            for center, size in search.places(coarse, p.search.windows)]
                 candidates, clock = self._tetrads(frame, [windows], p, hypotheses, pool, timings, clock, candidates)
-            elif stage == "seeded":
-                seeds = search.best(coarse, frame, p.search.seeds, p.search)
+            elif stage in ("seeded", "small"):
+                seeds = search.best(coarse, frame, p.search.seeds, p.search) if stage == "seeded" else \
+                    small_part_seeds(frame, groups, p.search, search, p.pose.min_size_pixels, p.pose.distances, pool)
+                clock = _lap(timings, "search", clock)
                 matched = hypotheses.at_seeds(seeds, frame, p.search.seed_window, p.matching, pool)
                 clock = _lap(timings, "matching", clock)
                 candidates += self._realigned(self._refiner.verify(best_covered(matched, p.search.hypotheses), frame,
