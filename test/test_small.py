@@ -49,7 +49,8 @@ def test_a_part_smaller_than_the_search_is_seeded_at_its_place_and_size_and_a_la
     search starts at 160 px): seeded from its own patch of edges (the patch's segments; the frame's
     whole edges also hold three long lines of clutter), the best seed has its place and
     depth within the coarse grid's steps, while no regular template is within a size step of
-    the part. Drawn 312 px wide, the regular sizes cover it and the patch adds nothing."""
+    the part. Drawn 312 px wide, the regular sizes cover it and the patch adds nothing; with
+long edges of something else about it, it is not searched."""
     camera = Camera.from_fov(640, 480, 600.0)
     p = SearchParams()
     outline = bracket_outline(0.8)
@@ -67,6 +68,11 @@ def test_a_part_smaller_than_the_search_is_seeded_at_its_place_and_size_and_a_la
     assert np.allclose(ray[:2] / ray[2] * camera.focal + [camera.cx, camera.cy], center, atol=8.0)
 
     frame, patch = drawn_frame(312.5, center, camera)
+    assert small_part_seeds(frame, [patch], p, finder, 40.0) == []
+    # the patch among longer edges of something else (a hole of a larger part): left alone
+    frame, patch = drawn_frame(pixels_per_metre, center, camera)
+    around = center + np.array([[[-90, -90], [90, -90]], [[90, -90], [90, 90]], [[90, 90], [-90, 90]]], float)
+    frame = dataclasses.replace(frame, segments_px=np.concatenate([frame.segments_px, around]))
     assert small_part_seeds(frame, [patch], p, finder, 40.0) == []
     # a known working range sets the sizes itself
     frame, patch = drawn_frame(pixels_per_metre, center, camera)

@@ -59,7 +59,7 @@ from ..camera import Camera
 from ..params import EstimatorParams, PoseParams, SearchParams
 from .frame import Frame
 from .hypotheses import TetradHypotheses, best_covered, best_per_region
-from .larger import centre_distance, larger_pose
+from .larger import centre_distance, larger_pose, projected_place
 from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
@@ -221,6 +221,8 @@ class Estimator:
             finalists = self._refiner.finalists(candidates, frame, p.pose, pool, climbs)
             best = check_rivals(in_working_range(finalists, self.graph, p.pose) or finalists, self.graph, frame,
                                 p.pose)
+            if "small" in p.search.stages:
+                best = self._likelier_than_small(best, finalists, frame, p, search, calibration)
             clock = _lap(timings, "refinement", clock)
         if p.pose.larger_check and search is not None and best.score < p.search.enough_score:
             best = larger_pose(best, self.graph, frame, p, search, hypotheses, self._refiner, pool)
@@ -230,20 +232,49 @@ class Estimator:
             best, margin = check_twins(best, self.graph, self._refiner, frame, p.pose, pool)
             clock = _lap(timings, "symmetry", clock)
         timings["total"] = sum(timings.values())
+        estimate = self._described(best, frame, p, calibration, margin, timings)
+        if is_found(estimate, p.pose):
+            estimate.found, estimate.R, estimate.t, estimate.covariance = True, best.R, best.t, best.covariance
+        return estimate
+
+    def _described(self, best: Candidate, frame: Frame, p: EstimatorParams, calibration, margin: float | None = None,
+                   timings: dict | None = None) -> Estimate:
+        """What the estimate reports of a pose (not yet judged found): its score's shares, the
+        error ratio, its size and the confidence."""
         pairs = edge_pairs(self.graph, best.R, best.t, frame, p)
         shares, size, length = pose_shares(self.graph, best.R, best.t, frame, p.pose)
         estimate = Estimate(found=False, R=None, t=None, score=best.score, error_ratio=pairs.error_ratio,
                             view_index=self.graph.nearest_view(best.R, best.t), n_image_segments=len(frame.segments_px),
                             n_matched=pairs.n_matched, n_nearest=pairs.n_nearest,
                             image_segments=pairs.image_segments, model_segments=pairs.model_segments,
-                            timings=timings, matched_view=int(best.hypothesis.view), symmetry_margin=margin,
-                            ambiguous=margin is not None and margin < p.pose.twin_margin, shares=shares,
-                            size_pixels=size, model_length_pixels=length,
+                            timings={} if timings is None else timings, matched_view=int(best.hypothesis.view),
+                            symmetry_margin=margin, ambiguous=margin is not None and margin < p.pose.twin_margin,
+                            shares=shares, size_pixels=size, model_length_pixels=length,
                             distance=centre_distance(self.graph, best))
         estimate.confidence = calibration.confidence(estimate, p.pose.prior)
-        if is_found(estimate, p.pose):
-            estimate.found, estimate.R, estimate.t, estimate.covariance = True, best.R, best.t, best.covariance
         return estimate
+
+    def _likelier_than_small(self, best: Candidate, finalists: list[Candidate], frame: Frame, p: EstimatorParams,
+                             search: TemplateSearch, calibration) -> Candidate:
+        """``best``, or where it is smaller than the template search's sizes (a pose the
+        ``small`` generator may have brought) the best finalist of the search's sizes if that
+        is more probably right: the score of a pose a third the size of another is not
+        comparable with it (the small pose has few edge pixels to miss; on the bench such
+        poses on clutter props outscored the part at 0.56-0.72), while the confidence was
+        fitted with the pose's size among its features and ranked the part first there."""
+        smallest = search.sizes(frame, p.search)[0] / np.sqrt(p.search.size_step)
+
+        def small(c: Candidate) -> bool:
+            return (c.R @ self.graph.model_center + c.t)[2] > 0 and \
+                projected_place(self.graph, c.R, c.t, frame)[1] < smallest
+
+        regular = [c for c in finalists if not small(c)]
+        if not small(best) or not regular:
+            return best
+        other = max(regular, key=lambda c: c.score)
+        likelier = self._described(other, frame, p, calibration).confidence > \
+            self._described(best, frame, p, calibration).confidence
+        return other if likelier else best
 
     def part_frame(self, image: np.ndarray, camera: Camera) -> Frame:
         """The image's edges as ``estimate`` sees them for this part: within the part's colour

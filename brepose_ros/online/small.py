@@ -13,8 +13,9 @@ the patch's widest span (the part covers its own edges) and at most that span ov
 narrowest view's span share (``TemplateLibrary.narrowest_span_share``). The search's best
 templates of each patch then seed the bipartite matching as the ``seeded`` generator's do.
 
-A patch the regular sizes cover is left to them, so an image whose edges all spread wider
-costs nothing; a patch costs one template search over its own box at a few sizes.
+A patch the regular sizes cover is left to them, and so is a patch among longer edges of
+other objects (``ISOLATION_SHARE``), so an image whose edges all spread wider costs nothing;
+a patch costs one template search over its own box at a few sizes.
 """
 from __future__ import annotations
 
@@ -33,6 +34,11 @@ BOX_MARGIN = 0.5
 #: the best distinct templates of a patch matched as seeds: a patch is a few hundred cells,
 #: where the whole image's ``search.seeds`` (128) would mostly repeat one place
 SEEDS_PER_PATCH = 32
+#: a patch is searched only if the other segments in its box are at most this share of its own
+#: edge length: a patch among longer edges is a piece of a larger object (on the bench a hole's
+#: ring inside a bracket 4x its size, where a small pose outscored the whole part), while a
+#: part far from the camera lies alone or among a few short edges of its background
+ISOLATION_SHARE = 0.25
 
 
 def widest_span(points: np.ndarray) -> float:
@@ -66,6 +72,8 @@ def small_part_seeds(frame: Frame, groups: list[np.ndarray], p: SearchParams, se
         return []
     regular = search.sizes(frame, p)
     h, w = frame.evidence.shape
+    middles = frame.segments_px.mean(axis=1)
+    lengths = np.linalg.norm(frame.segments_px[:, 1] - frame.segments_px[:, 0], axis=1)
     seeds: list[Hypothesis] = []
     done: set[tuple[int, int, int, int]] = set()
     for indices in groups:
@@ -80,6 +88,10 @@ def small_part_seeds(frame: Frame, groups: list[np.ndarray], p: SearchParams, se
         if (x0, y0, x1, y1) in done:  # the whole image's edges may be its one cluster
             continue
         done.add((x0, y0, x1, y1))
+        inside = np.all((middles >= [x0, y0]) & (middles <= [x1, y1]), axis=1)
+        inside[indices] = False
+        if lengths[inside].sum() > ISOLATION_SHARE * lengths[indices].sum():
+            continue
         coarse = search.coarse(frame, p, pool, sizes=sizes, box=(x0, y0, x1, y1))
         seeds += search.best(coarse, frame, SEEDS_PER_PATCH, p)
     return seeds
