@@ -8,7 +8,8 @@ import pytest
 from brepose_ros.camera import Camera
 from brepose_ros.online import search
 from brepose_ros.online.frame import Frame
-from brepose_ros.online.small import patch_sizes, small_part_seeds, widest_span
+from brepose_ros.online.search import widest_span
+from brepose_ros.online.small import patch_sizes, small_part_seeds
 from brepose_ros.params import SearchParams
 from graph_helpers import one_view_graph
 from test_search import Drawing, bracket_outline

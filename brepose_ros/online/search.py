@@ -110,14 +110,14 @@ class TemplateLibrary:
         #: the narrowest coarse view's widest span (its points' farthest pair) as a share of
         #: the diameter: a part whose outline fits in a region of that span is at most
         #: span / share across (``TemplateSearch.sizes``)
-        self.narrowest_span_share = min((_widest_span(self.points[v]) for v in self.coarse_views),
+        self.narrowest_span_share = min((widest_span(self.points[v]) for v in self.coarse_views),
                                         default=self.diameter) / self.diameter
         #: the farthest template point from the model centre as a share of the diameter: at most
         #: 0.5 with a graph's own diameter (its bounding box's diagonal), more in a hand-made graph
         self.reach_share = float(np.hypot(self.points[..., 0], self.points[..., 1]).max(initial=0.0)) / self.diameter
 
 
-def _widest_span(points: np.ndarray) -> float:
+def widest_span(points: np.ndarray) -> float:
     """The largest distance between two of the points (K, 2)."""
     return float(np.sqrt(((points[:, None, :] - points[None, :, :]) ** 2).sum(axis=-1).max()))
 

@@ -24,7 +24,7 @@ import numpy as np
 from ..params import SearchParams
 from .frame import Frame
 from .hypotheses import Hypothesis
-from .search import TemplateSearch
+from .search import TemplateSearch, widest_span
 from .workers import SERIAL, WorkerPool
 
 #: the box searched about a patch reaches this share of the largest size tried past the
@@ -39,11 +39,6 @@ SEEDS_PER_PATCH = 32
 #: ring inside a bracket 4x its size, where a small pose outscored the whole part), while a
 #: part far from the camera lies alone or among a few short edges of its background
 ISOLATION_SHARE = 0.25
-
-
-def widest_span(points: np.ndarray) -> float:
-    """The largest distance between two of the points (N, 2), pixels."""
-    return float(np.sqrt(((points[:, None, :] - points[None, :, :]) ** 2).sum(axis=-1).max(initial=0.0)))
 
 
 def patch_sizes(span: float, smallest_searched: float, narrowest_share: float, smallest_pose: float,
