@@ -82,6 +82,11 @@ class EdgeParams(Ranged):
         "the edges of a part 50-150 px across, half of whose edge length lies in shorter edges "
         "(docs/results/real_lmo.md)", 0.015, 0.0, 1.0)
     max_segments: int = doc("at most this many merged segments are kept, longest first", 200, 1, 2000)
+    background_line_fraction: float = doc(
+        "an image line whose collinear segments reach across at least this share of the image diagonal (and add "
+        "up to half of that) is taken for the background's (a table's seams, tiles, slats, a perforated plate's "
+        "rows), longer than any edge of a part in view: its edge pixels are left out of the score's explained "
+        "share (docs/results/backgrounds.md); 0: no line is", 0.5, 0.0, 4.0)
     colour_regions: bool = doc(
         "parts whose model has colour (a scanned mesh with vertex colours), in colour images: only the edge pixels "
         "in the regions of the part's own chromaticity count (online/colour_regions.py), so that the search and "

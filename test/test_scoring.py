@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from brepose_ros.online import kernels, scoring
-from brepose_ros.online.image_edges import EdgeParams, canny_from_gradients, gradients
+from brepose_ros.online.image_edges import (EdgeParams, background_segments, canny_from_gradients, detect_edges,
+                                            gradients)
 from brepose_ros.online.workers import WorkerPool
 from brepose_ros.params import PoseParams
 
@@ -99,6 +100,58 @@ def test_cells_where_the_pose_lies_beside_the_parts_edges_count_against_it_and_h
     beside, occluded = shares(gray, model + [4.0, 0.0]), shares(hidden, model)
     assert beside.explained < shares(gray, model + [4.0, 0.0], seen_pixels=0.0).explained - 0.3
     assert occluded.score == pytest.approx(shares(hidden, model, seen_pixels=0.0).score, abs=0.02)
+
+
+def l_plate_on_a_ruled_table(ruled=True):
+    """A bright L plate with a square hole (160 px, ``l_plate``) on a grey table ruled with dark
+    lines 2 px wide every 24 px at 30 degrees, across the whole 640 x 480 image: the plate
+    stands in front of them, its hole shows them. The image and the plate's model segments
+    (pixels)."""
+    table = np.full((480, 640), 120, np.uint8)
+    along = np.array([np.cos(np.radians(30)), np.sin(np.radians(30))])
+    for offset in range(-600, 600, 24) if ruled else ():
+        centre = np.array([320.0, 240.0]) + offset * np.array([-along[1], along[0]])
+        ends = np.rint([centre - 900 * along, centre + 900 * along]).astype(int)
+        cv2.line(table, tuple(map(int, ends[0])), tuple(map(int, ends[1])), 70, 2, cv2.LINE_AA)
+    corners, model = l_plate((320, 240), 160)
+    gray = table.copy()
+    cv2.fillPoly(gray, [np.round(corners[0]).astype(np.int32)], 210)
+    hole = np.zeros(gray.shape, np.uint8)
+    cv2.fillPoly(hole, [np.round(corners[1]).astype(np.int32)], 1)
+    gray[hole > 0] = table[hole > 0]
+    return gray, model
+
+
+def test_lines_ruled_across_the_table_are_not_the_parts_edges_and_do_not_sink_it():
+    """The ruled lines' pieces on either side of the plate (and in its hole) join into lines
+    reaching across more than half the image (``edges.background_line_fraction``), while no
+    edge of the plate is that long: the edge stage drops their pixels, over half of the
+    image's, and of the pixels on the plate's outline only the lines' own ends meeting it.
+    Kept (fraction 0), they sink the true pose's explained share below 0.6; dropped, it is
+    above 0.9 and the truth scores above ``pose.min_score``, while a pose drawing only the
+    plate's hole still does not explain the plate around it and a pose turned 8 degrees
+    scores well below the truth. Without the lines the edge stage drops nothing."""
+    gray, model = l_plate_on_a_ruled_table()
+    kept, cleared = detect_edges(gray, EdgeParams(background_line_fraction=0.0)), detect_edges(gray, EdgeParams())
+    assert len(background_segments(kept.segments, float(np.hypot(*gray.shape)), EdgeParams())) >= 8
+    dropped = (kept.edge_map > 0) & (cleared.edge_map == 0)
+    assert not ((cleared.edge_map > 0) & (kept.edge_map == 0)).any() and dropped.sum() > 0.5 * (kept.edge_map > 0).sum()
+    outline = np.zeros(gray.shape, np.uint8)
+    cv2.polylines(outline, [np.rint(segment).astype(np.int32) for segment in model], False, 1, 3)
+    on_outline = (outline > 0) & (kept.edge_map > 0)  # the plate's edge pixels and the lines' ends meeting them
+    assert (dropped & on_outline).sum() < 0.05 * on_outline.sum()
+
+    def evidence(edges):
+        return scoring.EdgeEvidence(edges.edge_map, edges.gradient_x, edges.gradient_y)
+
+    assert evidence(kept).shares(model, 2.0, MARGIN).explained < 0.6
+    truth = evidence(cleared).shares(model, 2.0, MARGIN)
+    assert truth.explained > 0.9 and truth.score > PoseParams().min_score
+    assert evidence(cleared).shares(model[6:], 2.0, MARGIN).explained < 0.5  # the hole's four edges alone
+    assert evidence(cleared).shares(turned(model, 8.0), 2.0, MARGIN).score < truth.score - 0.25
+    plain, _ = l_plate_on_a_ruled_table(ruled=False)
+    assert np.array_equal(detect_edges(plain, EdgeParams()).edge_map,
+                          detect_edges(plain, EdgeParams(background_line_fraction=0.0)).edge_map)
 
 
 def test_a_pose_too_far_on_pieces_of_the_parts_edges_is_told_by_the_edges_running_on():

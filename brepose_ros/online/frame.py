@@ -9,7 +9,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..params import EdgeParams
-from .image_edges import ImageEdges, edge_pixels, line_segments, refinement_params
+from .image_edges import ImageEdges, edge_pixels, line_segments, refinement_params, without_background
 from .scoring import EdgeEvidence
 from .workers import SERIAL, WorkerPool
 
@@ -45,14 +45,23 @@ class Frame:
         image before the refinement's threads would each wait for them. ``mask`` (H, W) bool
         keeps only its edge pixels (one part's ``colour_regions``), and its regions' sizes
         (``region_extents``) bound the template search's; Canny's thresholds are the whole
-        image's either way."""
+        image's either way. Edge pixels along lines too long to be a part's are dropped
+        (``image_edges.without_background``), as ``detect_edges`` drops them."""
         pixels = edge_pixels(image, params)
         if mask is not None:
             pixels = dataclasses.replace(pixels, edge_map=np.where(mask, pixels.edge_map, 0).astype(np.uint8))
-        evidence = _evidence(pixels)
-        segments, refine_segments, *nearest = pool.map(lambda job: job(), [
-            lambda: line_segments(pixels, params), lambda: line_segments(pixels, refinement_params(params)),
-            *evidence.bin_jobs(tolerances)])
+
+        def segments_and_evidence(pixels: ImageEdges) -> tuple:
+            evidence = _evidence(pixels)
+            return evidence, *pool.map(lambda job: job(), [
+                lambda: line_segments(pixels, params), lambda: line_segments(pixels, refinement_params(params)),
+                *evidence.bin_jobs(tolerances)])
+
+        evidence, segments, refine_segments, *nearest = segments_and_evidence(pixels)
+        cleared = without_background(pixels, segments, params)
+        if cleared is not pixels:  # the background's lines found (rare): all of it again without them
+            pixels = cleared
+            evidence, segments, refine_segments, *nearest = segments_and_evidence(pixels)
         evidence.adopt(nearest)
         edges = dataclasses.replace(pixels, segments=segments, refine_segments=refine_segments)
         return edges, cls._with(edges, camera, evidence, None if mask is None else region_extents(mask))

@@ -35,6 +35,9 @@ from .kernels import connected_labels, edge_runs_kernel, median_of_every_other, 
 
 #: median / scale of a Rayleigh distribution: the gradient magnitude of pure Gaussian noise
 _RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
+#: an edge pixel runs along a line when its direction is this close to the line's, degrees:
+#: the score's direction bin, over which Sobel directions on a blurred edge scatter
+_ALONG_DEG = 22.5
 #: Canny takes int16 derivatives; scaling the float Sobel output keeps sub-grey-level steps
 #: (3x3 Sobel of a 0..255 image stays within +-1020, times 16 within int16)
 _DERIVATIVE_SCALE = 16.0
@@ -63,7 +66,11 @@ def detect_edges(image: np.ndarray, params: EdgeParams = EdgeParams()) -> ImageE
     ValueError. A constant image has no edges and gives (0, 2, 2) segments.
     """
     pixels = edge_pixels(image, params)
-    return dataclasses.replace(pixels, segments=line_segments(pixels, params),
+    segments = line_segments(pixels, params)
+    cleared = without_background(pixels, segments, params)
+    if cleared is not pixels:
+        pixels, segments = cleared, line_segments(cleared, params)
+    return dataclasses.replace(pixels, segments=segments,
                                refine_segments=line_segments(pixels, refinement_params(params)))
 
 
@@ -101,6 +108,61 @@ def line_segments(pixels: ImageEdges, params: EdgeParams) -> np.ndarray:
     lengths = np.linalg.norm(merged[:, 1] - merged[:, 0], axis=1)
     merged = merged[lengths >= params.min_length_fraction * float(np.hypot(*gray.shape))]
     return merged[: params.max_segments]
+
+
+def background_segments(segments: np.ndarray, diagonal: float, params: EdgeParams) -> np.ndarray:
+    """Those of the merged ``segments`` (K, 2, 2) that lie on a straight line whose pieces
+    reach, from the first to the last, across at least ``background_line_fraction`` of the
+    image ``diagonal`` and add up to at least half of that: a table's seams or a tiled floor
+    cross the frame, broken where something stands in front, and no edge of a part in view
+    is that long. Pieces are collinear as :func:`merge_segments` joins them, but across any
+    gap."""
+    segments = np.asarray(segments, np.float64).reshape(-1, 2, 2)
+    lengths = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
+    bound = params.background_line_fraction * diagonal
+    if params.background_line_fraction <= 0 or lengths.sum() < bound / 2:
+        return np.zeros((0, 2, 2))
+    segments, lengths = segments[lengths > 0], lengths[lengths > 0]
+    unit = (segments[:, 1] - segments[:, 0]) / lengths[:, None]
+    tolerance = np.minimum(np.deg2rad(params.merge_angle_deg) + np.arctan(1.0 / lengths), np.pi / 2)
+    i, j = _candidate_pairs(np.arctan2(unit[:, 1], unit[:, 0]) % np.pi, tolerance + tolerance.max())
+    longer = np.where(lengths[i] >= lengths[j], i, j)
+    shorter = i + j - longer
+    joins = _joins(segments[shorter], unit[shorter], np.sin(tolerance[shorter]), segments[longer, 0], unit[longer],
+                   -np.inf, np.inf, params)
+    groups, label = connected_labels(len(segments), i[joins], j[joins])
+    centre, axis = _fit_lines(label, groups, segments.mean(axis=1), lengths, unit)
+    t = ((segments - centre[label][:, None]) * axis[label][:, None]).sum(axis=-1)
+    lo, hi = np.full(groups, np.inf), np.full(groups, -np.inf)
+    np.minimum.at(lo, label, t.min(axis=1))
+    np.maximum.at(hi, label, t.max(axis=1))
+    long = (hi - lo >= bound) & (np.bincount(label, lengths, minlength=groups) >= bound / 2)
+    return segments[long[label]]
+
+
+def without_background(pixels: ImageEdges, segments: np.ndarray, params: EdgeParams) -> ImageEdges:
+    """``pixels`` without the edge pixels that run along one of the :func:`background_segments`
+    of its ``segments`` (within ``merge_distance`` of it, turned from it by less than
+    ``_ALONG_DEG``: an edge that meets or crosses it keeps its pixels): the same object when
+    there are none."""
+    shape = pixels.edge_map.shape
+    lines = background_segments(segments, float(np.hypot(*shape)), params)
+    if not len(lines):
+        return pixels
+    label = np.zeros(shape, np.int32)  # 1 + the segment drawn last over a pixel (lines cross at a few)
+    width = int(round(2 * params.merge_distance)) + 1
+    for k, (a, b) in enumerate(np.rint(lines).astype(int)):
+        cv2.line(label, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), k + 1, width)
+    rows, cols = np.nonzero(pixels.edge_map)
+    line = label[rows, cols] - 1
+    rows, cols, line = rows[line >= 0], cols[line >= 0], line[line >= 0]
+    # the direction the edge runs in, as EdgeEvidence's (across the gradient)
+    direction = np.arctan2(pixels.gradient_y[rows, cols], pixels.gradient_x[rows, cols]) + np.pi / 2
+    d = lines[line, 1] - lines[line, 0]
+    along = np.abs(np.sin(direction - np.arctan2(d[:, 1], d[:, 0]))) <= np.sin(np.radians(_ALONG_DEG))
+    edge_map = pixels.edge_map.copy()
+    edge_map[rows[along], cols[along]] = 0
+    return dataclasses.replace(pixels, edge_map=edge_map)
 
 
 def extract_segments(image: np.ndarray, params: EdgeParams = EdgeParams()) -> np.ndarray:
