@@ -84,9 +84,12 @@ class EdgeParams(Ranged):
     max_segments: int = doc("at most this many merged segments are kept, longest first", 200, 1, 2000)
     background_line_fraction: float = doc(
         "an image line whose collinear segments reach across at least this share of the image diagonal (and add "
-        "up to half of that) is taken for the background's (a table's seams, tiles, slats, a perforated plate's "
-        "rows), longer than any edge of a part in view: its edge pixels are left out of the score's explained "
-        "share (docs/results/backgrounds.md); 0: no line is", 0.5, 0.0, 4.0)
+        "up to half of that), in a row of background_pattern_lines such lines, is the background's pattern (a "
+        "table's seams, tiles, slats, a perforated plate's rows), not a part's edges: its edge pixels are dropped "
+        "before the segments and the score (docs/results/backgrounds.md); 0: no line is", 0.4, 0.0, 4.0)
+    background_pattern_lines: int = doc(
+        "background_line_fraction: this many such lines at least, parallel within merge_angle_deg, make a "
+        "background's pattern (a grained surface shows 1-3 long streaks)", 5, 1, 1000)
     colour_regions: bool = doc(
         "parts whose model has colour (a scanned mesh with vertex colours), in colour images: only the edge pixels "
         "in the regions of the part's own chromaticity count (online/colour_regions.py), so that the search and "

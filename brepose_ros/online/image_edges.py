@@ -113,10 +113,11 @@ def line_segments(pixels: ImageEdges, params: EdgeParams) -> np.ndarray:
 def background_segments(segments: np.ndarray, diagonal: float, params: EdgeParams) -> np.ndarray:
     """Those of the merged ``segments`` (K, 2, 2) that lie on a straight line whose pieces
     reach, from the first to the last, across at least ``background_line_fraction`` of the
-    image ``diagonal`` and add up to at least half of that: a table's seams or a tiled floor
-    cross the frame, broken where something stands in front, and no edge of a part in view
-    is that long. Pieces are collinear as :func:`merge_segments` joins them, but across any
-    gap."""
+    image ``diagonal`` and add up to at least half of that, one of ``background_pattern_lines``
+    or more such lines running parallel (within ``merge_angle_deg``): a table's seams, tiles
+    or slats cross the frame in rows, broken where something stands in front, and no part in
+    view has that many edges that long (a grained surface's few long streaks are left alone).
+    Pieces are collinear as :func:`merge_segments` joins them, but across any gap."""
     segments = np.asarray(segments, np.float64).reshape(-1, 2, 2)
     lengths = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
     bound = params.background_line_fraction * diagonal
@@ -136,8 +137,12 @@ def background_segments(segments: np.ndarray, diagonal: float, params: EdgeParam
     lo, hi = np.full(groups, np.inf), np.full(groups, -np.inf)
     np.minimum.at(lo, label, t.min(axis=1))
     np.maximum.at(hi, label, t.max(axis=1))
-    long = (hi - lo >= bound) & (np.bincount(label, lengths, minlength=groups) >= bound / 2)
-    return segments[long[label]]
+    long = np.flatnonzero((hi - lo >= bound) & (np.bincount(label, lengths, minlength=groups) >= bound / 2))
+    direction = np.arctan2(axis[long, 1], axis[long, 0])
+    parallel = np.abs(np.sin(direction[:, None] - direction[None, :])) <= np.sin(np.deg2rad(params.merge_angle_deg))
+    pattern = np.zeros(groups, bool)
+    pattern[long[parallel.sum(axis=1) >= params.background_pattern_lines]] = True
+    return segments[pattern[label]]
 
 
 def without_background(pixels: ImageEdges, segments: np.ndarray, params: EdgeParams) -> ImageEdges:
