@@ -89,7 +89,8 @@ class EdgeParams(Ranged):
         "before the segments and the score (docs/results/backgrounds.md); 0: no line is", 0.4, 0.0, 4.0)
     background_pattern_lines: int = doc(
         "background_line_fraction: this many such lines at least, parallel within merge_angle_deg, make a "
-        "background's pattern (a grained surface shows 1-3 long streaks)", 5, 1, 1000)
+        "background's pattern (the bench's ruled tables show 20-80; a long rod in front shows up to 6, with its "
+        "shading's edges, and a grained surface 1-3)", 8, 1, 1000)
     colour_regions: bool = doc(
         "parts whose model has colour (a scanned mesh with vertex colours), in colour images: only the edge pixels "
         "in the regions of the part's own chromaticity count (online/colour_regions.py), so that the search and "

@@ -130,8 +130,8 @@ def test_lines_ruled_across_the_table_are_not_the_parts_edges_and_do_not_sink_it
     Kept (fraction 0), they sink the true pose's explained share below 0.6; dropped, it is
     above 0.9 and the truth scores above ``pose.min_score``, while a pose drawing only the
     plate's hole still does not explain the plate around it and a pose turned 8 degrees
-    scores well below the truth. Two ruled lines, four edges that long, are no pattern (a
-    part may show as many), and nothing is dropped."""
+    scores well below the truth. Three ruled lines, six edges that long, are no pattern (a
+    long rod in front shows as many), and nothing is dropped."""
     gray, model = l_plate_on_a_ruled_table()
     kept, cleared = detect_edges(gray, EdgeParams(background_line_fraction=0.0)), detect_edges(gray, EdgeParams())
     assert len(background_segments(kept.segments, float(np.hypot(*gray.shape)), EdgeParams())) >= 8
@@ -150,11 +150,11 @@ def test_lines_ruled_across_the_table_are_not_the_parts_edges_and_do_not_sink_it
     assert truth.explained > 0.9 and truth.score > PoseParams().min_score
     assert evidence(cleared).shares(model[6:], 2.0, MARGIN).explained < 0.5  # the hole's four edges alone
     assert evidence(cleared).shares(turned(model, 8.0), 2.0, MARGIN).score < truth.score - 0.25
-    two, _ = l_plate_on_a_ruled_table(rows=2)
-    assert np.array_equal(detect_edges(two, EdgeParams()).edge_map,
-                          detect_edges(two, EdgeParams(background_line_fraction=0.0)).edge_map)
-    assert not np.array_equal(detect_edges(two, EdgeParams(background_pattern_lines=4)).edge_map,
-                              detect_edges(two, EdgeParams(background_line_fraction=0.0)).edge_map)
+    three, _ = l_plate_on_a_ruled_table(rows=3)
+    assert np.array_equal(detect_edges(three, EdgeParams()).edge_map,
+                          detect_edges(three, EdgeParams(background_line_fraction=0.0)).edge_map)
+    assert not np.array_equal(detect_edges(three, EdgeParams(background_pattern_lines=6)).edge_map,
+                              detect_edges(three, EdgeParams(background_line_fraction=0.0)).edge_map)
 
 
 def test_a_pose_too_far_on_pieces_of_the_parts_edges_is_told_by_the_edges_running_on():

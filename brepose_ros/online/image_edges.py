@@ -116,7 +116,7 @@ def background_segments(segments: np.ndarray, diagonal: float, params: EdgeParam
     image ``diagonal`` and add up to at least half of that, one of ``background_pattern_lines``
     or more such lines running parallel (within ``merge_angle_deg``): a table's seams, tiles
     or slats cross the frame in rows, broken where something stands in front, and no part in
-    view has that many edges that long (a grained surface's few long streaks are left alone).
+    view has that many edges that long (a rod's or a grained surface's few are left alone).
     Pieces are collinear as :func:`merge_segments` joins them, but across any gap."""
     segments = np.asarray(segments, np.float64).reshape(-1, 2, 2)
     lengths = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
