@@ -124,8 +124,9 @@ def l_plate_on_a_ruled_table(rows=50):
 
 def test_lines_ruled_across_the_table_are_not_the_parts_edges_and_do_not_sink_it():
     """The ruled lines' pieces on either side of the plate (and in its hole) join into lines
-    reaching across more than half the image (``edges.background_line_fraction``), while no
-    edge of the plate is that long: the edge stage drops their pixels, over half of the
+    reaching across more than 0.4 of the image's diagonal (``edges.background_line_fraction``),
+    eight or more of them parallel (``edges.background_pattern_lines``), while no edge of the
+    plate is that long: the edge stage drops their pixels, over half of the
     image's, and of the pixels on the plate's outline only the lines' own ends meeting it.
     Kept (fraction 0), they sink the true pose's explained share below 0.6; dropped, it is
     above 0.9 and the truth scores above ``pose.min_score``, while a pose drawing only the

@@ -133,10 +133,7 @@ def background_segments(segments: np.ndarray, diagonal: float, params: EdgeParam
                    -np.inf, np.inf, params)
     groups, label = connected_labels(len(segments), i[joins], j[joins])
     centre, axis = _fit_lines(label, groups, segments.mean(axis=1), lengths, unit)
-    t = ((segments - centre[label][:, None]) * axis[label][:, None]).sum(axis=-1)
-    lo, hi = np.full(groups, np.inf), np.full(groups, -np.inf)
-    np.minimum.at(lo, label, t.min(axis=1))
-    np.maximum.at(hi, label, t.max(axis=1))
+    lo, hi = _spans(label, groups, ((segments - centre[label][:, None]) * axis[label][:, None]).sum(axis=-1))
     long = np.flatnonzero((hi - lo >= bound) & (np.bincount(label, lengths, minlength=groups) >= bound / 2))
     direction = np.arctan2(axis[long, 1], axis[long, 0])
     parallel = np.abs(np.sin(direction[:, None] - direction[None, :])) <= np.sin(np.deg2rad(params.merge_angle_deg))
@@ -368,10 +365,7 @@ def _merge_once(segments: np.ndarray, params: EdgeParams) -> np.ndarray:
     fits = (np.abs((offsets * normal[:, None]).sum(axis=-1)).max(axis=1) <= params.merge_distance) & (
         np.abs((unit * normal).sum(axis=1)) <= sin_tolerance)
     straight = np.bincount(label, ~fits, minlength=groups) == 0
-    t = (offsets * axis[label][:, None]).sum(axis=-1)
-    lo, hi = np.full(groups, np.inf), np.full(groups, -np.inf)
-    np.minimum.at(lo, label, t.min(axis=1))
-    np.maximum.at(hi, label, t.max(axis=1))
+    lo, hi = _spans(label, groups, (offsets * axis[label][:, None]).sum(axis=-1))
     merged = [np.stack([centre + lo[:, None] * axis, centre + hi[:, None] * axis], axis=1)[straight]]
 
     curved = np.flatnonzero(~straight[label])
@@ -381,6 +375,15 @@ def _merge_once(segments: np.ndarray, params: EdgeParams) -> np.ndarray:
             merged.append(_grow_edges(segments, unit, lengths, sin_tolerance, group, params))
     merged = np.concatenate(merged)
     return merged[np.argsort(-np.linalg.norm(merged[:, 1] - merged[:, 0], axis=1), kind="stable")]
+
+
+def _spans(label: np.ndarray, groups: int, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per group, the lowest and highest of its pieces' end point positions ``t`` (K, 2) along
+    its line (piece k in group label[k])."""
+    lo, hi = np.full(groups, np.inf), np.full(groups, -np.inf)
+    np.minimum.at(lo, label, t.min(axis=1))
+    np.maximum.at(hi, label, t.max(axis=1))
+    return lo, hi
 
 
 def _candidate_pairs(angle: np.ndarray, window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
