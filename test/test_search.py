@@ -475,3 +475,43 @@ def test_a_working_distance_limits_the_sizes_searched_to_the_parts_between_the_t
     diagonal = np.hypot(640, 480)
     assert sizes[-1] >= nearest[-1] >= size * (1 - 1e-9) and nearest[0] == pytest.approx(p.min_size_fraction * diagonal)
     assert finder.sizes(frame, p, (1e-4, 1e-4))[-1] <= 4.0 * diagonal  # the largest max_size_fraction
+
+
+def test_a_search_about_a_box_scans_only_the_cells_near_it_and_scores_as_over_the_whole_image():
+    """A patch's or the larger check's search (``coarse`` with a box) gives every template the
+    score and cell that the whole image's maps with the edges outside the box unset give, to
+    the bit, on maps of fewer cells; on texture, whose density outside the box sets the probes'
+    share (``probe_share``) as over the whole image."""
+    from brepose_ros.camera import Camera
+    from brepose_ros.online.frame import Frame
+
+    rng = np.random.default_rng(5)
+    camera, p = Camera.from_fov(640, 480, 600.0), SearchParams()
+    part = bracket_outline(0.8)
+    image = Drawing(480, 640)
+    image.draw(np.array([290.0, 240.0]) + 90.0 * part)
+    starts = rng.uniform([200, 160], [380, 320], size=(800, 2))  # dense about the box, none far off
+    turns = rng.uniform(0, np.pi, 800)
+    image.draw(np.stack([starts, starts + 8.0 * np.stack([np.cos(turns), np.sin(turns)], axis=1)], axis=1))
+    box, sizes = (217, 171, 371, 313), np.array([70.0, 90.0, 110.0])
+    boxed = image.evidence()
+    outside = np.ones((480, 640), bool)
+    outside[box[1]:box[3], box[0]:box[2]] = False
+    boxed.like_edges[:, outside] = 0
+
+    def frame(evidence):
+        return Frame(segments_px=np.zeros((0, 2, 2)), segments_n=np.zeros((0, 2, 2)),
+                     refine_segments_n=np.zeros((0, 2, 2)), camera=camera, evidence=evidence,
+                     edge_points_n=camera.undistort(evidence.pixels))
+
+    finder = search.TemplateSearch(one_view_graph(part), p)
+    about = finder.coarse(frame(image.evidence()), p, WorkerPool(2), sizes=sizes, box=box)
+    whole = finder.coarse(frame(boxed), p, WorkerPool(2), sizes=sizes)
+    assert (about.score > 0).sum() > 10
+    for key in ("score", "y", "x"):
+        assert np.array_equal(getattr(about, key), getattr(whole, key)), key
+    maps = search.ResponseMaps.of(image.evidence(), p.coarse_factor, p.spread, 8, box=box)
+    assert maps.shape[0] * maps.shape[1] < 0.5 * maps.image_shape[0] * maps.image_shape[1]
+    low = SearchParams(min_coarse_share=0.0)  # the share then is the density's
+    assert search.probe_share(maps, low) == search.probe_share(
+        search.ResponseMaps.of(boxed, p.coarse_factor, p.spread, 8), low)

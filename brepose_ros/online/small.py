@@ -73,6 +73,8 @@ def small_part_seeds(frame: Frame, groups: list[np.ndarray], p: SearchParams, se
     done: set[tuple[int, int, int, int]] = set()
     for indices in groups:
         ends = frame.segments_px[indices].reshape(-1, 2)
+        if np.ptp(ends, axis=0).max() > regular[0] / np.sqrt(p.size_step):
+            continue  # wider than any size ``patch_sizes`` allows, its widest span (K^2) not needed
         sizes = patch_sizes(widest_span(ends), regular[0], search.library.narrowest_span_share, smallest_pose,
                             p.size_step)
         if not len(sizes):
