@@ -515,3 +515,16 @@ def test_a_search_about_a_box_scans_only_the_cells_near_it_and_scores_as_over_th
     low = SearchParams(min_coarse_share=0.0)  # the share then is the density's
     assert search.probe_share(maps, low) == search.probe_share(
         search.ResponseMaps.of(boxed, p.coarse_factor, p.spread, 8), low)
+
+
+def test_the_image_sizes_templates_stay_kept_past_more_one_off_sets_than_are_kept():
+    """An image derives its sizes' templates, then a patch's or a place's sets of its own
+    (``small``, ``larger``): the least recently used set goes, not every set, so the next
+    image finds its sizes' templates kept (clearing them all cost it 5 ms)."""
+    p = SearchParams()
+    finder = search.TemplateSearch(one_view_graph(bracket_outline(0.8)), p)
+    regular = finder._coarse_templates(p.angles, np.array([160.0, 200.0]), p.coarse_factor)
+    for image in range(3):
+        assert finder._coarse_templates(p.angles, np.array([160.0, 200.0]), p.coarse_factor) is regular
+        for patch in range(search.TemplateSearch.KEPT_TEMPLATE_SETS - 1):
+            finder._coarse_templates(p.angles, np.array([50.0 + 10 * image + patch]), p.coarse_factor)

@@ -428,7 +428,8 @@ class TemplateSearch:
     """The search of the module doc for one aspect graph."""
 
     #: sets of coarse templates kept (``_coarse_templates``): the image's sizes, and the
-    #: ``larger`` check's about a few places
+    #: ``larger`` check's about a few places and the ``small`` generator's of its patches; the
+    #: least recently used goes, so an image's one-off sets leave the image's sizes kept
     KEPT_TEMPLATE_SETS = 4
 
     def __init__(self, graph: AspectGraph, p: SearchParams):
@@ -505,9 +506,11 @@ class TemplateSearch:
         template's view, angle, size and size index, read-only; kept for the next image (the
         same camera and parameters give the same templates: 5 ms of each image's search)."""
         key = (angle_count, factor, sizes.tobytes())
-        if key not in self._templates:
+        if key in self._templates:
+            self._templates[key] = self._templates.pop(key)  # the most recently used last
+        else:
             if len(self._templates) >= self.KEPT_TEMPLATE_SETS:
-                self._templates.clear()
+                del self._templates[next(iter(self._templates))]
             views = self.library.coarse_views
             angles = np.arange(angle_count) * (2 * np.pi / angle_count)
             arrays = (*self.templates(views, angles, sizes, factor), np.repeat(views, len(angles) * len(sizes)),
