@@ -528,3 +528,18 @@ def test_the_image_sizes_templates_stay_kept_past_more_one_off_sets_than_are_kep
         assert finder._coarse_templates(p.angles, np.array([160.0, 200.0]), p.coarse_factor) is regular
         for patch in range(search.TemplateSearch.KEPT_TEMPLATE_SETS - 1):
             finder._coarse_templates(p.angles, np.array([50.0 + 10 * image + patch]), p.coarse_factor)
+
+
+def test_templates_of_new_sizes_from_the_kept_turned_points_are_those_derived_afresh():
+    """The turned points kept from an earlier set of sizes give a patch's sizes the offsets
+    and bins a fresh search derives, to the bit."""
+    p = SearchParams()
+    graph = one_view_graph(bracket_outline(0.8))
+    angles = np.arange(p.angles) * (2 * np.pi / p.angles)
+    kept = search.TemplateSearch(graph, p)
+    views = kept.library.coarse_views
+    kept.templates(views, angles, np.array([160.0, 200.0]), p.coarse_factor)
+    patch = np.array([57.0, 71.5, 89.0])
+    for a, b in zip(kept.templates(views, angles, patch, p.coarse_factor),
+                    search.TemplateSearch(graph, p).templates(views, angles, patch, p.coarse_factor)):
+        assert a.dtype == b.dtype and np.array_equal(a, b)

@@ -436,6 +436,7 @@ class TemplateSearch:
         self.graph = graph
         self.library = TemplateLibrary(graph, p)
         self._templates: dict[tuple, tuple[np.ndarray, ...]] = {}
+        self._turned_points: dict[tuple, tuple[np.ndarray, ...]] = {}
         self.warm()
 
     @staticmethod
@@ -488,18 +489,28 @@ class TemplateSearch:
         """Offsets (T, K) in coarse cells and direction bins of every (view, angle, size),
         in that nesting order."""
         lib = self.library
-        c, s = np.cos(angles), np.sin(angles)
-        pts = lib.points[views]  # (V, K, 2)
-        rx = pts[:, None, :, 0] * c[None, :, None] - pts[:, None, :, 1] * s[None, :, None]  # (V, A, K)
-        ry = pts[:, None, :, 0] * s[None, :, None] + pts[:, None, :, 1] * c[None, :, None]
+        rx, ry, bins = self._turned(views, angles)
         scale = sizes / lib.diameter / factor  # coarse cells per metre
         dx = np.rint(rx[:, :, None] * scale[None, None, :, None]).astype(np.int16)  # (V, A, S, K)
         dy = np.rint(ry[:, :, None] * scale[None, None, :, None]).astype(np.int16)
-        direction = np.mod(lib.angles[views][:, None, :] + angles[None, :, None], np.pi)
-        bins = (direction / np.pi * BINS).astype(np.uint8) % BINS  # (V, A, K)
         bins = np.broadcast_to(bins[:, :, None], dx.shape)
         k = lib.n_points
         return dx.reshape(-1, k), dy.reshape(-1, k), np.ascontiguousarray(bins).reshape(-1, k)
+
+    def _turned(self, views: np.ndarray, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The views' template points turned by each angle, x and y (V, A, K) in metres, and
+        their direction bins (V, A, K): the same at every size, kept for the last views and
+        angles (half of a patch's ``templates``, each of which has sizes of its own)."""
+        key = (views.tobytes(), angles.tobytes())
+        if key not in self._turned_points:
+            lib = self.library
+            c, s = np.cos(angles), np.sin(angles)
+            pts = lib.points[views]  # (V, K, 2)
+            rx = pts[:, None, :, 0] * c[None, :, None] - pts[:, None, :, 1] * s[None, :, None]
+            ry = pts[:, None, :, 0] * s[None, :, None] + pts[:, None, :, 1] * c[None, :, None]
+            direction = np.mod(lib.angles[views][:, None, :] + angles[None, :, None], np.pi)
+            self._turned_points = {key: (rx, ry, (direction / np.pi * BINS).astype(np.uint8) % BINS)}
+        return self._turned_points[key]
 
     def _coarse_templates(self, angle_count: int, sizes: np.ndarray, factor: int) -> tuple[np.ndarray, ...]:
         """``templates`` of the coarse views at ``angle_count`` in-plane angles and each
