@@ -167,8 +167,8 @@ class ResponseMaps:
            box: tuple[int, int, int, int] | None = None, pool: WorkerPool = SERIAL) -> "ResponseMaps":
         """The maps of the edge pixels, only those within ``box`` (x0, y0, x1, y1 pixels) if
         given, and then only over the cells within ``spread + pad`` of the box: a template at a
-        cell farther off reaches no set cell (a patch's search scanned the whole image's cells,
-        2-4 times the box's, for the same scores); one job per bin on the ``pool``'s threads
+        cell farther off reaches no set cell, and a patch's box is a fraction of the image; one
+        job per bin on the ``pool``'s threads
         (OpenCV's dilations, which release the GIL), each with its bin's ``bounds`` (1-2 ms of
         numpy in the calling thread for all bins at once)."""
         h, w = evidence.shape
@@ -500,7 +500,7 @@ class TemplateSearch:
     def _turned(self, views: np.ndarray, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The views' template points turned by each angle, x and y (V, A, K) in metres, and
         their direction bins (V, A, K): the same at every size, kept for the last views and
-        angles (half of a patch's ``templates``, each of which has sizes of its own)."""
+        angles (half the cost of a patch's ``templates``, each patch having sizes of its own)."""
         key = (views.tobytes(), angles.tobytes())
         if key not in self._turned_points:
             lib = self.library
