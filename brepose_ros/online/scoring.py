@@ -72,12 +72,7 @@ def scored_tolerances(graph: AspectGraph, p: PoseParams) -> tuple[float, ...]:
     ``Frame.detect`` builds with the image's edges (``pose.outline_pixels`` only for a part
     with curved faces)."""
     curved = bool(np.any(graph.seg_kind != SHARP))
-    return look_up_tolerances(p.inlier_pixels, p.outline_pixels if curved else None, p.seen_pixels)
-
-
-def look_up_tolerances(inlier_px: float, outline_px: float | None, seen_px: float) -> tuple[float, ...]:
-    """The maps' tolerances a score reads, pixels, in their layers' order (``LookUp``)."""
-    return LookUp.of(inlier_px, outline_px, seen_px).tolerances
+    return LookUp.of(p.inlier_pixels, p.outline_pixels if curved else None, p.seen_pixels).tolerances
 
 
 @dataclass(frozen=True)

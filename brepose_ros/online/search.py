@@ -436,7 +436,7 @@ class TemplateSearch:
         self.graph = graph
         self.library = TemplateLibrary(graph, p)
         self._templates: dict[tuple, tuple[np.ndarray, ...]] = {}
-        self._turned_points: dict[tuple, tuple[np.ndarray, ...]] = {}
+        self._last_turned: tuple[tuple, tuple[np.ndarray, ...]] | None = None
         self.warm()
 
     @staticmethod
@@ -502,15 +502,16 @@ class TemplateSearch:
         their direction bins (V, A, K): the same at every size, kept for the last views and
         angles (half the cost of a patch's ``templates``, each patch having sizes of its own)."""
         key = (views.tobytes(), angles.tobytes())
-        if key not in self._turned_points:
+        last = self._last_turned
+        if last is None or last[0] != key:
             lib = self.library
             c, s = np.cos(angles), np.sin(angles)
             pts = lib.points[views]  # (V, K, 2)
             rx = pts[:, None, :, 0] * c[None, :, None] - pts[:, None, :, 1] * s[None, :, None]
             ry = pts[:, None, :, 0] * s[None, :, None] + pts[:, None, :, 1] * c[None, :, None]
             direction = np.mod(lib.angles[views][:, None, :] + angles[None, :, None], np.pi)
-            self._turned_points = {key: (rx, ry, (direction / np.pi * BINS).astype(np.uint8) % BINS)}
-        return self._turned_points[key]
+            last = self._last_turned = key, (rx, ry, (direction / np.pi * BINS).astype(np.uint8) % BINS)
+        return last[1]
 
     def _coarse_templates(self, angle_count: int, sizes: np.ndarray, factor: int) -> tuple[np.ndarray, ...]:
         """``templates`` of the coarse views at ``angle_count`` in-plane angles and each
