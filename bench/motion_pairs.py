@@ -29,8 +29,10 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.accuracy import (CONDITIONS, PARTS, SPAN, add_scene_arguments, distractor_meshes,  # noqa: E402
-                            graph_and_model, overridden_params, scene_path, step_file)
-from brepose_ros.evaluation.metrics import pose_errors  # noqa: E402
+                            overridden_params, scene_path, step_file)
+from bench.graphs import cached_graph_path  # noqa: E402
+from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
+from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
@@ -77,9 +79,10 @@ def main(argv=None) -> int:
         step = step_file(PARTS[name], cache)
         if step is None:
             continue
-        graph, model = graph_and_model(step, cache)
         part = load_step(step)
-        mesh = tessellate(part)
+        mesh = tessellate(part)  # renders the images and measures the poses
+        graph = AspectGraph.load(cached_graph_path(step, cache, 5.0))
+        model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
         estimator = Estimator(graph, params)
         for condition in args.conditions:
             folder = scene_path(cache, name, condition)

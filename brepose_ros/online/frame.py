@@ -9,7 +9,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..params import EdgeParams
-from .image_edges import ImageEdges, edge_pixels, line_segments, refinement_params, without_background
+from .image_edges import ImageEdges, edge_pixels, finished_without_background, line_segments, refinement_params
 from .scoring import EdgeEvidence
 from .workers import SERIAL, WorkerPool
 
@@ -53,15 +53,13 @@ class Frame:
 
         def segments_and_evidence(pixels: ImageEdges) -> tuple:
             evidence = _evidence(pixels)
-            return evidence, *pool.map(lambda job: job(), [
+            segments, refine_segments, *nearest = pool.map(lambda job: job(), [
                 lambda: line_segments(pixels, params), lambda: line_segments(pixels, refinement_params(params)),
                 *evidence.bin_jobs(tolerances)])
+            return segments, refine_segments, evidence, nearest
 
-        evidence, segments, refine_segments, *nearest = segments_and_evidence(pixels)
-        cleared = without_background(pixels, segments, params)
-        if cleared is not pixels:  # the background's lines found (rare): all of it again without them
-            pixels = cleared
-            evidence, segments, refine_segments, *nearest = segments_and_evidence(pixels)
+        pixels, (segments, refine_segments, evidence, nearest) = finished_without_background(
+            pixels, params, segments_and_evidence)
         evidence.adopt(nearest)
         edges = dataclasses.replace(pixels, segments=segments, refine_segments=refine_segments)
         return edges, cls._with(edges, camera, evidence, None if mask is None else region_extents(mask))

@@ -26,6 +26,7 @@ Coordinates are pixels, x right, y down, pixel centres at integer coordinates.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -65,13 +66,20 @@ def detect_edges(image: np.ndarray, params: EdgeParams = EdgeParams()) -> ImageE
     (H, W, 1), BGR or BGRA (H, W, 3|4); anything else, an empty image or NaN/inf raise
     ValueError. A constant image has no edges and gives (0, 2, 2) segments.
     """
-    pixels = edge_pixels(image, params)
-    segments = line_segments(pixels, params)
-    cleared = without_background(pixels, segments, params)
-    if cleared is not pixels:
-        pixels, segments = cleared, line_segments(cleared, params)
-    return dataclasses.replace(pixels, segments=segments,
-                               refine_segments=line_segments(pixels, refinement_params(params)))
+    pixels, (segments, refine_segments) = finished_without_background(
+        edge_pixels(image, params), params,
+        lambda pixels: (line_segments(pixels, params), line_segments(pixels, refinement_params(params))))
+    return dataclasses.replace(pixels, segments=segments, refine_segments=refine_segments)
+
+
+def finished_without_background(pixels: ImageEdges, params: EdgeParams,
+                                finish: Callable[[ImageEdges], tuple]) -> tuple[ImageEdges, tuple]:
+    """``pixels`` and ``finish(pixels)`` (whose first item is the search's line segments), or,
+    where those segments show a background's pattern of long lines (:func:`without_background`,
+    rare), the pixels without it and everything finished again on them."""
+    finished = finish(pixels)
+    cleared = without_background(pixels, finished[0], params)
+    return (pixels, finished) if cleared is pixels else (cleared, finish(cleared))
 
 
 def refinement_params(params: EdgeParams) -> EdgeParams:
