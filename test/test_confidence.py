@@ -4,7 +4,8 @@ import pytest
 import yaml
 
 from brepose_ros.evaluation.metrics import precision_lower_bound, reliability
-from brepose_ros.online.confidence import FEATURES, Calibration, Logistic, features, load_calibration, shipped_path
+from brepose_ros.online.confidence import (COIN_TOSS, FEATURES, Calibration, Logistic, features, load_calibration,
+                                          shipped_path)
 from brepose_ros.online.estimator import Estimate, is_found, not_found_reason
 from brepose_ros.online.scoring import Shares
 from brepose_ros.params import EstimatorParams
@@ -187,6 +188,25 @@ def test_the_shipped_confidence_rises_with_the_score():
     shipped = load_calibration("")
     low, high = shipped.confidence(estimate(0.3)), shipped.confidence(estimate(0.95))
     assert 0.0 <= low < high <= 1.0
+
+
+def test_a_pose_the_image_cannot_tell_from_its_twin_is_at_most_a_coin_toss():
+    """Twin margin 0: a twin holds and the edges telling the two apart do not favour the pose
+    (the notched plate turned half round, its notch unseen), so the whole score chose; the
+    fitted models alone rated such poses trusted. A margin above 0 or no twin at all keeps the
+    fitted confidence."""
+    shipped = load_calibration("")
+    clear = dict(confirmed=0.95, explained=0.95, significance=0.999999)
+    undecided, barely, alone = (shipped.confidence(estimate(0.95, **clear, symmetry_margin=margin,
+                                                           ambiguous=margin is not None), 1.0)
+                                for margin in (0.0, 0.01, None))
+    assert undecided == pytest.approx(COIN_TOSS) and barely > COIN_TOSS and alone > COIN_TOSS
+    # where the part is rarely in view the coin toss is scaled down like any confidence
+    assert shipped.confidence(estimate(0.95, **clear, symmetry_margin=0.0, ambiguous=True), 0.1) < undecided
+    # a calibration that does not weigh the twin margin knows no twins
+    blind = Calibration(("score",), Logistic((0.6,), (0.15,), (3.0,), 0.0), Logistic((0.6,), (0.15,), (3.0,), 0.0),
+                        0.5, {})
+    assert blind.confidence(estimate(0.95, symmetry_margin=0.0), 1.0) > COIN_TOSS
 
 
 def judged(e: Estimate, p=None) -> bool:

@@ -65,6 +65,15 @@ FEATURES: dict[str, Callable[["Estimate"], float]] = {
 }
 
 
+#: the most the confidence says of a pose whose twin margin is 0: a twin (or rival) holds on
+#: the image and the edges that tell the two apart show it at least as well (or show too little
+#: to count), so the whole score chose between poses the image does not tell apart. The
+#: models were fitted on the tuning parts, which are nearly free of such twins, and rated some
+#: of those poses above the trusted level (the notched plate turned half round: 0.59); on the
+#: bench's images 0-63 such found poses were right 24 of 51 times (docs/results/symmetry.md)
+COIN_TOSS = 0.5
+
+
 def features(estimate: "Estimate") -> dict[str, float]:
     """Every feature of ``FEATURES`` for one estimate."""
     return {name: float(get(estimate)) for name, get in FEATURES.items()}
@@ -195,11 +204,17 @@ class Calibration:
 
     def probability(self, x: np.ndarray, prior: float | None = None) -> np.ndarray:
         """The confidence of rows of raw features (N, F) in ``features`` order where a share
-        ``prior`` of the images hold the part (None: the fit's own mix)."""
+        ``prior`` of the images hold the part (None: the fit's own mix); where the twin margin
+        is 0 the pose is right at most ``COIN_TOSS`` of the times the part is in view (a
+        calibration without the ``twin_margin`` feature cannot tell those poses)."""
         shift = 0.0 if prior is None else shifted_log_odds(prior, self.prior)
         with np.errstate(over="ignore"):  # exp(inf) at prior 0 gives the right limit, 0
             present = 1.0 / (1.0 + np.exp(-(self.present.logit(x) + shift)))
-        return present * self.right.probability(x)
+        right = self.right.probability(x)
+        if "twin_margin" in self.features:
+            undecided = np.asarray(x, float)[:, self.features.index("twin_margin")] <= 0.0
+            right = np.where(undecided, np.minimum(right, COIN_TOSS), right)
+        return present * right
 
     def confidence(self, estimate: "Estimate", prior: float | None = None) -> float:
         """The probability that ``estimate``'s pose is right, in [0, 1] (``probability``)."""
