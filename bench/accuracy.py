@@ -195,7 +195,9 @@ def image_record(result) -> dict:
     e = result.errors
     record = {"image": result.image, "found": e is not None, "score": float(result.estimate.score),
               "error_ratio": float(result.estimate.error_ratio), "confidence": float(result.estimate.confidence),
-              "ms": 1000.0 * result.estimate.timings.get("total", 0.0)}
+              "ms": 1000.0 * result.estimate.timings.get("total", 0.0),
+              # the twin check's margin (None: the part has no twin), which the confidence weighs
+              "symmetry_margin": result.estimate.symmetry_margin}
     return record | (e.to_dict() if e is not None else {})
 
 
