@@ -303,7 +303,7 @@ class Outcomes:
 
     def __init__(self, records: list[dict], calibration: Calibration, prior: float | None = None):
         self.score, self.correct, self.positive, owner, part = arrays(records)
-        self.confidence = calibration.probability(feature_matrix(records, calibration.features), prior)
+        self.confidence = calibration.probability(feature_matrix(records, calibration.features), prior, tied(records))
         self.condition = np.array([r["condition"] for r in records])
         self.apart = apart_from_look_alikes(owner, part)
 
@@ -427,7 +427,7 @@ def print_reliability(calibration: Calibration, sets: dict) -> None:
             among = positive if prior >= 1.0 else np.ones(len(records), bool)
             weights = prior_weights(positive, prior)[among] if 0.0 < prior < 1.0 else None
             for setting in dict.fromkeys((prior, None)):
-                confidence = calibration.probability(x[among], setting)
+                confidence = calibration.probability(x[among], setting, tied(records)[among])
                 error, _ = reliability(confidence, correct[among], weights)
                 mean = np.average(confidence, weights=weights)
                 print(f"| {label} | {prior:.0%} of images | {'fit mix' if setting is None else f'{setting:g}'} | "
@@ -483,7 +483,7 @@ def plot_rules(path: Path, calibration: Calibration, sets: dict, chosen, trusted
                                          None, "o-"),
                                         ("part always in view, pose.prior 1", positive, 1.0, "s-"),
                                         ("part always in view, no correction", positive, None, "^:")):
-        error, rows = reliability(calibration.probability(x[among], setting), correct[among])
+        error, rows = reliability(calibration.probability(x[among], setting, tied(records)[among]), correct[among])
         rows = np.array(rows)
         axes[1].plot(rows[:, 1], rows[:, 2], style, label=f"{name} (ECE {error:.3f})")
     axes[1].plot([0, 1], [0, 1], color="grey", linewidth=1)
@@ -495,6 +495,12 @@ def plot_rules(path: Path, calibration: Calibration, sets: dict, chosen, trusted
     axes[1].legend(fontsize=7, loc="upper left")
     axes[1].set_title(f"reliability, {label}", fontsize=9)
     save_figure(fig, path, dpi=72)
+
+
+def tied(records: list[dict]) -> np.ndarray:
+    """(N,) whether each estimate was tied with a twin (``Estimate.twin_tie``; records written
+    before it was kept hold none)."""
+    return np.array([bool(r.get("twin_tie", False)) for r in records], bool)
 
 
 def feature_matrix(records: list[dict], names) -> np.ndarray:
@@ -530,7 +536,8 @@ def record(result, owner: str, part: str, condition: str, correct: bool, truth_d
     shares = estimate.shares._asdict() if estimate.shares is not None else {}
     errors = result.errors.to_dict() if result.errors is not None else {}
     return {"owner": owner, "part": part, "condition": condition, "image": result.image, "correct": correct,
-            "margin": estimate.symmetry_margin, "confidence": float(estimate.confidence), **shares,
+            "margin": estimate.symmetry_margin, "twin_tie": estimate.twin_tie, "confidence": float(estimate.confidence),
+            **shares,
             **features(estimate), **{k: float(v) for k, v in errors.items()}, "distance": estimate.distance,
             "truth_distance": truth_distance}
 

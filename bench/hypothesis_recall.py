@@ -91,7 +91,7 @@ def measure(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> di
     if candidates:
         best = chosen_pose(estimator, candidates, frame, p)
         if p.pose.twin_check:
-            best, _ = check_twins(best, g, estimator._refiner, frame, p.pose)
+            best = check_twins(best, g, estimator._refiner, frame, p.pose).pose
         success = best.score >= p.pose.min_score and pose_errors(best.R, best.t, entry.R, entry.t, model, g).success_sym
     done = time.perf_counter()
     first = bool(candidates) and near[int(np.argmax([c.score for c in candidates]))]

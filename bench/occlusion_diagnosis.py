@@ -118,7 +118,7 @@ def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> d
                                                           model, g).success_sym
     final = chosen_pose(estimator, candidates, frame, p) if candidates else None
     if final is not None and p.pose.twin_check:
-        final, _ = check_twins(final, g, refiner, frame, p.pose)
+        final = check_twins(final, g, refiner, frame, p.pose).pose
     success = final is not None and pose_errors(final.R, final.t, entry.R, entry.t, model, g).success_sym
     found = final is not None and final.score >= p.pose.min_score
     if success and found:

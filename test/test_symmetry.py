@@ -323,11 +323,11 @@ def test_the_end_over_end_twins_that_climb_are_the_best_two_still_turned_and_the
 
     def pick(pose, twins, *rest):  # the poses the check compares, the pose kept
         compared.extend(twins)
-        return pose, 1.0
+        return symmetry.Verdict(pose, 1.0)
 
     monkeypatch.setattr(symmetry, "pose_scores", lambda graph, R, t, frame, p: np.zeros(len(R)))
     monkeypatch.setattr(symmetry, "pick_by_evidence", pick)
-    assert symmetry.check_twins(best, graph, Refiner(), None, EstimatorParams().pose) == (best, 1.0)
+    assert symmetry.check_twins(best, graph, Refiner(), None, EstimatorParams().pose) == (best, 1.0, False)
     R_twins, _, _, _ = symmetry.end_over_end(graph, best.R, best.t)
     climbed = [int(np.argmin([rotation_angle_deg(c.R, R_k) for R_k in R_twins])) for c in compared]
     assert sorted(climbed) == [0, 5, symmetry.ACROSS_DIRECTIONS // 2, 8]
@@ -377,8 +377,8 @@ def test_a_pose_that_loses_on_evidence_to_one_twin_does_not_win_on_noise_over_an
     """``pick_by_evidence``: the pose (a few degrees off) shows clearly less than twin A on
     the edges that tell them apart; A and twin B tie there, and the pose and B cannot be told
     apart (B scores 0.005 below the pose). The pose stands down, and of A and B the better
-    whole score, B, is kept, as ambiguous: the pose's lead of pixel noise over B must not let
-    A win (the notched plate's clutter 6 on the bench)."""
+    whole score, B, is kept, as ambiguous and tied with the pose: the pose's lead of pixel
+    noise over B must not let A win (the notched plate's clutter 6 on the bench)."""
     from brepose_ros.online import symmetry
     from brepose_ros.online.refinement import Candidate
     from brepose_ros.params import PoseParams
@@ -389,12 +389,12 @@ def test_a_pose_that_loses_on_evidence_to_one_twin_does_not_win_on_noise_over_an
     twin_b = Candidate(0.714, R @ rotation_about(np.array([0.0, 1.0, 0.0]), np.pi), pose.t, None)
     evidence = {(0.719, 0.668): (0.425, True), (0.719, 0.714): (-0.005, False), (0.668, 0.714): (0.0, True)}
     monkeypatch.setattr(symmetry, "twin_evidence", lambda graph, a, b, frame, p: evidence[(a.score, b.score)])
-    kept, margin = symmetry.pick_by_evidence(pose, [twin_a, twin_b], graph_with(), None, PoseParams())
-    assert kept is twin_b and margin == 0.0
-    # where A also shows more than B, A is kept, its smallest gain the margin
+    kept, margin, tied = symmetry.pick_by_evidence(pose, [twin_a, twin_b], graph_with(), None, PoseParams())
+    assert kept is twin_b and margin == 0.0 and tied
+    # where A also shows more than B, A is kept, its smallest gain the margin; nothing ties with it
     evidence[(0.668, 0.714)] = (-0.3, True)
-    kept, margin = symmetry.pick_by_evidence(pose, [twin_a, twin_b], graph_with(), None, PoseParams())
-    assert kept is twin_a and margin == pytest.approx(0.3)
+    kept, margin, tied = symmetry.pick_by_evidence(pose, [twin_a, twin_b], graph_with(), None, PoseParams())
+    assert kept is twin_a and margin == pytest.approx(0.3) and not tied
     # where the image tells none apart, a rival displaces the pose only by a clear whole score
     evidence.update({key: (0.0, False) for key in evidence})
     assert symmetry.pick_by_evidence(pose, [twin_a, twin_b], graph_with(), None, PoseParams())[0] is pose
@@ -407,8 +407,8 @@ def test_a_pose_that_loses_on_evidence_to_one_twin_does_not_win_on_noise_over_an
 def test_a_twin_below_the_found_floor_still_makes_the_pose_ambiguous(monkeypatch):
     """``pick_by_evidence``: a twin scoring under ``pose.min_score`` but from ``RIVAL_FLOOR`` on
     is a rival (the confidence's twin features were recorded so); the image cannot tell it
-    from the pose, so the pose is kept with margin 0 (ambiguous). Below the rival floor a twin
-    is none: margin 1."""
+    from the pose, so the pose is kept with margin 0 (ambiguous), but the whole scores chose
+    clearly: no tie. Below the rival floor a twin is none: margin 1."""
     from brepose_ros.online import symmetry
     from brepose_ros.online.refinement import Candidate
     from brepose_ros.params import PoseParams
@@ -420,9 +420,9 @@ def test_a_twin_below_the_found_floor_still_makes_the_pose_ambiguous(monkeypatch
     monkeypatch.setattr(symmetry, "twin_evidence", lambda graph, a, b, frame, p: (0.0, False))
     below_found = Candidate((symmetry.RIVAL_FLOOR + p.min_score) / 2, flip, pose.t, None)
     assert symmetry.RIVAL_FLOOR < below_found.score < p.min_score
-    assert symmetry.pick_by_evidence(pose, [below_found], graph_with(), None, p) == (pose, 0.0)
+    assert symmetry.pick_by_evidence(pose, [below_found], graph_with(), None, p) == (pose, 0.0, False)
     below_rivals = Candidate(symmetry.RIVAL_FLOOR - 0.01, flip, pose.t, None)
-    assert symmetry.pick_by_evidence(pose, [below_rivals], graph_with(), None, p) == (pose, 1.0)
+    assert symmetry.pick_by_evidence(pose, [below_rivals], graph_with(), None, p) == (pose, 1.0, False)
 
 @pytest.fixture(scope="module")
 def plate_graph(builtin_step):
@@ -466,7 +466,7 @@ def twin_check(graph, image, camera, R, t):
     p = EstimatorParams()
     frame = Frame.of(detect_edges(image, p.edges), camera)
     score = float(pose_scores(graph, R[None], t[None], frame, p.pose)[0])
-    kept, margin = check_twins(Candidate(score, R, t, None), graph, PoseRefiner(graph), frame, p.pose)
+    kept, margin, _ = check_twins(Candidate(score, R, t, None), graph, PoseRefiner(graph), frame, p.pose)
     return kept, margin, margin < p.pose.twin_margin
 
 

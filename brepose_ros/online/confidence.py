@@ -65,12 +65,12 @@ FEATURES: dict[str, Callable[["Estimate"], float]] = {
 }
 
 
-#: the most the confidence says of a pose whose twin margin is 0: a twin (or rival) holds on
-#: the image and the edges that tell the two apart show it at least as well (or show too little
-#: to count), so the whole score chose between poses the image does not tell apart. The
-#: models were fitted on the tuning parts, which are nearly free of such twins, and rated some
-#: of those poses above the trusted level (the notched plate turned half round: 0.59); on the
-#: bench's images 0-63 such found poses were right 24 of 51 times (docs/results/symmetry.md)
+#: the most the confidence says, where the part is in view, of a pose tied with a twin
+#: (``Estimate.twin_tie``): the image shows neither more than the other and they score alike,
+#: so which was reported is a coin toss. The models were fitted on the tuning parts, nearly
+#: free of such twins, and rated some of those poses trusted (the notched plate turned half
+#: round: 0.59); on the bench's images 0-15 the tied poses found were right 7 of 12
+#: (docs/results/symmetry.md)
 COIN_TOSS = 0.5
 
 
@@ -202,24 +202,23 @@ class Calibration:
         if not (_finite(self.prior) and 0.0 < self.prior < 1.0):
             raise ValueError(f"prior must be a number strictly between 0 and 1, got {self.prior!r}")
 
-    def probability(self, x: np.ndarray, prior: float | None = None) -> np.ndarray:
+    def probability(self, x: np.ndarray, prior: float | None = None, tied=None) -> np.ndarray:
         """The confidence of rows of raw features (N, F) in ``features`` order where a share
-        ``prior`` of the images hold the part (None: the fit's own mix); where the twin margin
-        is 0 the pose is right at most ``COIN_TOSS`` of the times the part is in view (a
-        calibration without the ``twin_margin`` feature cannot tell those poses)."""
+        ``prior`` of the images hold the part (None: the fit's own mix); the rows ``tied``
+        (N,) with a twin (``Estimate.twin_tie``; None: none) are right at most ``COIN_TOSS``
+        of the times the part is in view."""
         shift = 0.0 if prior is None else shifted_log_odds(prior, self.prior)
         with np.errstate(over="ignore"):  # exp(inf) at prior 0 gives the right limit, 0
             present = 1.0 / (1.0 + np.exp(-(self.present.logit(x) + shift)))
         right = self.right.probability(x)
-        if "twin_margin" in self.features:
-            undecided = np.asarray(x, float)[:, self.features.index("twin_margin")] <= 0.0
-            right = np.where(undecided, np.minimum(right, COIN_TOSS), right)
+        if tied is not None:
+            right = np.where(np.asarray(tied, bool), np.minimum(right, COIN_TOSS), right)
         return present * right
 
     def confidence(self, estimate: "Estimate", prior: float | None = None) -> float:
         """The probability that ``estimate``'s pose is right, in [0, 1] (``probability``)."""
         values = features(estimate)
-        return float(self.probability(np.array([[values[f] for f in self.features]]), prior)[0])
+        return float(self.probability(np.array([[values[f] for f in self.features]]), prior, [estimate.twin_tie])[0])
 
     @classmethod
     def fit(cls, x: np.ndarray, correct: np.ndarray, present: np.ndarray, names: tuple[str, ...],

@@ -108,6 +108,9 @@ class Estimate:
     symmetry_margin: float | None = None
     #: the margin is below ``pose.twin_margin``: the image cannot tell the pose from a twin
     ambiguous: bool = False
+    #: a twin the image does not tell from the pose scores as well (``symmetry.Verdict``): which
+    #: of the two is reported is a coin toss, and the confidence says so (``confidence.COIN_TOSS``)
+    twin_tie: bool = False
     #: the three parts of the score at the final pose (``scoring.Shares``); None when nothing was scored
     shares: Shares | None = None
     #: diagonal and edge length of the projected visible model edges at the final pose, pixels
@@ -227,18 +230,18 @@ class Estimator:
         if p.pose.larger_check and search is not None and best.score < p.search.enough_score:
             best = larger_pose(best, self.graph, frame, p, search, hypotheses, self._refiner, pool)
             clock = _lap(timings, "larger", clock)
-        margin = None
+        margin, tied = None, False
         if p.pose.twin_check:
-            best, margin = check_twins(best, self.graph, self._refiner, frame, p.pose, pool)
+            best, margin, tied = check_twins(best, self.graph, self._refiner, frame, p.pose, pool)
             clock = _lap(timings, "symmetry", clock)
         timings["total"] = sum(timings.values())
-        estimate = self._described(best, frame, p, calibration, margin, timings)
+        estimate = self._described(best, frame, p, calibration, margin, timings, tied)
         if is_found(estimate, p.pose):
             estimate.found, estimate.R, estimate.t, estimate.covariance = True, best.R, best.t, best.covariance
         return estimate
 
     def _described(self, best: Candidate, frame: Frame, p: EstimatorParams, calibration, margin: float | None = None,
-                   timings: dict | None = None) -> Estimate:
+                   timings: dict | None = None, tied: bool = False) -> Estimate:
         """What the estimate reports of a pose (not yet judged found): its score's shares, the
         error ratio, its size and the confidence."""
         pairs = edge_pairs(self.graph, best.R, best.t, frame, p)
@@ -249,6 +252,7 @@ class Estimator:
                             image_segments=pairs.image_segments, model_segments=pairs.model_segments,
                             timings={} if timings is None else timings, matched_view=int(best.hypothesis.view),
                             symmetry_margin=margin, ambiguous=margin is not None and margin < p.pose.twin_margin,
+                            twin_tie=tied,
                             shares=shares, size_pixels=size, model_length_pixels=length,
                             distance=centre_distance(self.graph, best))
         estimate.confidence = calibration.confidence(estimate, p.pose.prior)

@@ -34,6 +34,8 @@ the best climbed one replaces it when the edges that tell the two apart show it 
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ..aspect_graph import AspectGraph
@@ -92,11 +94,24 @@ RIVAL_SCORE_GAP = 0.03
 RIVAL_PLACE = 0.5
 
 
+class Verdict(NamedTuple):
+    """What the twin check (or the rival check's comparison) kept: the ``pose``, its ``margin``
+    over its strongest rival (``pick_by_evidence``), and whether it is ``tied``: a rival that
+    the edges telling the two apart do not show less of scores within both scores' noise of
+    the pose (``2 * MIN_GAIN``), so the image cannot choose between them at all (the notched
+    plate and its half turn with the notch unseen, 0.910 against 0.902)."""
+
+    pose: Candidate
+    margin: float
+    tied: bool = False
+
+
 def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame: Frame,
                 p: PoseParams, pool: WorkerPool = SERIAL, compared: list[Candidate] | None = None
-                ) -> tuple[Candidate, float | None]:
+                ) -> Verdict:
     """The pose (``best`` or one of its twins) with the most evidence on the edges that tell
-    them apart, and its margin over its strongest rival (module doc); margin None when the
+    them apart, its margin over its strongest rival and whether a twin ties with it (module
+    doc, ``Verdict``); margin None when the
     part has no near symmetry nor a near continuous axis (``end_over_end``), 1 when no twin
     holds on the image (each refines back onto the pose or scores below ``RIVAL_FLOOR``).
     The twins climb and polish on the ``pool``'s threads, in step, each as it would alone.
@@ -108,7 +123,7 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     near = np.nonzero(~graph.exact_symmetries)[0]
     R_flip, t_flip, axis_of, keeps_outline = end_over_end(graph, best.R, best.t)
     if len(near) == 0 and len(R_flip) == 0:
-        return best, None
+        return Verdict(best, None)
     R, t = graph.symmetric_poses(best.R, best.t, near)
     R, t = refiner.refine(R, t, frame, p, CLIMB_ROUNDS)
     starts = [Candidate(float(score), R_k, t_k, best.hypothesis)
@@ -143,10 +158,10 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     climbed = refiner.climb_together(starts, frame, p, pool, each_alone=True)
     climbed[len(near):] = [rolled(c, *axis, graph, frame, p) for c, axis in zip(climbed[len(near):], flip_axes)]
     twins = refiner.polished(climbed, frame, p, pool)
-    winner, margin = pick_by_evidence(best, twins + (compared or []), graph, frame, p)
-    if compared is None and winner is not best:
-        return check_twins(winner, graph, refiner, frame, p, pool, compared=[best] + twins)
-    return winner, margin
+    verdict = pick_by_evidence(best, twins + (compared or []), graph, frame, p)
+    if compared is None and verdict.pose is not best:
+        return check_twins(verdict.pose, graph, refiner, frame, p, pool, compared=[best] + twins)
+    return verdict
 
 
 def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray
@@ -237,7 +252,7 @@ def check_rivals(finalists: list[Candidate], graph: AspectGraph, frame: Frame, p
               < RIVAL_PLACE * size]
     if not rivals:
         return best
-    winner, margin = pick_by_evidence(best, rivals, graph, frame, p)
+    winner, margin, _ = pick_by_evidence(best, rivals, graph, frame, p)
     # a lower score is overruled only where the image tells the two apart (the margin below
     # which a pose is called ambiguous against its twin): a right pose lost to a pose on the
     # part's rim at a 0.06 margin, a 176-degree turn lost to the right pose at 0.74
@@ -245,10 +260,11 @@ def check_rivals(finalists: list[Candidate], graph: AspectGraph, frame: Frame, p
 
 
 def pick_by_evidence(best: Candidate, twins: list[Candidate], graph: AspectGraph, frame: Frame,
-                     p: PoseParams) -> tuple[Candidate, float]:
+                     p: PoseParams) -> Verdict:
     """Of the pose and its refined ``twins``, the one with the most evidence on the edges
-    that tell them apart, and its margin over its strongest rival (``check_twins``,
-    ``check_rivals``; also bench/flips.py's generic alternates)."""
+    that tell them apart, its margin over its strongest rival, and whether a rival ties with
+    it (``Verdict``; ``check_twins``, ``check_rivals``; also bench/flips.py's generic
+    alternates)."""
     # a twin is a rival when it scores like a pose the image could hold and did not refine
     # back onto the pose (or onto another rival)
     rivals: list[Candidate] = []
@@ -256,7 +272,7 @@ def pick_by_evidence(best: Candidate, twins: list[Candidate], graph: AspectGraph
         if twin.score >= RIVAL_FLOOR and not any(same_pose(twin, c, graph.model_diameter) for c in [best] + rivals):
             rivals.append(twin)
     if not rivals:
-        return best, 1.0  # no twin holds on this image
+        return Verdict(best, 1.0)  # no twin holds on this image
     # with several near symmetries the rivals are twins of each other too: each pose's margin
     # is its smallest gain over any other
     poses = [best] + rivals
@@ -273,20 +289,25 @@ def pick_by_evidence(best: Candidate, twins: list[Candidate], graph: AspectGraph
     standing = np.flatnonzero(~beaten)
     np.fill_diagonal(gains, np.inf)
     margins = gains.min(axis=0)
+    scores = np.array([c.score for c in poses])
     if len(standing) == 0:  # a cycle of gains: the pose with the largest smallest gain
         winner = int(np.argmax(margins))
         if margins[winner] <= margins[0] + 2 * MIN_GAIN:
             winner = 0
     else:
-        scores = np.array([c.score for c in poses])
         winner = int(standing[np.argmax(scores[standing])])
         if not beaten[0] and scores[winner] <= scores[0] + 2 * MIN_GAIN:
             # the pose won on the whole score already: a rival the image does not tell from
             # it displaces it only by more than both scores' noise (the screw's clutter 4 lost
             # its right pose to a flip 0.018 above it)
             winner = 0
+    # the poses the winner does not show more of than they show (or the image cannot tell
+    # from it): where one of them scores within the scores' noise, nothing chose
+    undecided = (~seen[:, winner]) | (gains[:, winner] <= 0.0)
+    undecided[winner] = False
+    tied = bool(np.any(undecided & (scores >= scores[winner] - 2 * MIN_GAIN)))
     # where the distinguishing feature shows too little, the whole scores chose: no margin
-    return poses[winner], float(max(margins[winner], 0.0)) if seen[:, winner].all() else 0.0
+    return Verdict(poses[winner], float(max(margins[winner], 0.0)) if seen[:, winner].all() else 0.0, tied)
 
 
 def same_pose(a: Candidate, b: Candidate, diameter: float) -> bool:
