@@ -165,7 +165,8 @@ def write_predictions(path: str | Path, predictions: list[dict]) -> None:
 
 def prediction_entry(image: str, estimate) -> dict:
     """One entry of the predictions JSON; for a part with near symmetries also the pose's
-    ``symmetry_margin`` over its twins and whether the image left it ``ambiguous``."""
+    ``symmetry_margin`` over its twins, whether the image left it ``ambiguous`` and whether a
+    twin ties with it (``twin_tie``)."""
     found = estimate.found
     entry = {"image": image,
              "R": np.asarray(estimate.R).ravel().tolist() if found else None,
@@ -173,7 +174,8 @@ def prediction_entry(image: str, estimate) -> dict:
              "score": float(estimate.score), "error_ratio": float(estimate.error_ratio),
              "confidence": float(estimate.confidence)}
     if estimate.symmetry_margin is not None:
-        entry.update(symmetry_margin=float(estimate.symmetry_margin), ambiguous=bool(estimate.ambiguous))
+        entry.update(symmetry_margin=float(estimate.symmetry_margin), ambiguous=bool(estimate.ambiguous),
+                     twin_tie=bool(estimate.twin_tie))
     return entry
 
 

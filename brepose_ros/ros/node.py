@@ -293,7 +293,9 @@ def estimate_values(estimate: Estimate) -> dict[str, Any]:
               "image_edges": estimate.n_image_segments, "matched_pairs": estimate.n_matched,
               "nearest_pairs": estimate.n_nearest,
               # evidence over the symmetric twins; -1: the part has no near symmetry
-              "symmetry_margin": -1.0 if estimate.symmetry_margin is None else float(estimate.symmetry_margin)}
+              "symmetry_margin": -1.0 if estimate.symmetry_margin is None else float(estimate.symmetry_margin),
+              # a twin the image does not tell from the pose scores as well: a coin toss
+              "twin_tie": estimate.twin_tie}
     values.update({f"{stage}_ms": 1000.0 * float(s) for stage, s in estimate.timings.items()})
     return values
 
