@@ -69,8 +69,8 @@ FEATURES: dict[str, Callable[["Estimate"], float]] = {
 #: (``Estimate.twin_tie``): the image shows neither more than the other and they score alike,
 #: so which was reported is a coin toss. The models were fitted on the tuning parts, nearly
 #: free of such twins, and rated some of those poses trusted (the notched plate turned half
-#: round: 0.59); on the bench's images 0-15 the tied poses found were right 7 of 12
-#: (docs/results/symmetry.md)
+#: round: 0.59); tied poses were right 7 of the 12 found it held down on the bench's images
+#: 0-15, 4 of 44 on images 32-47 (docs/results/symmetry.md)
 COIN_TOSS = 0.5
 
 
