@@ -89,15 +89,17 @@ def _gauss_newton(R: np.ndarray, t: np.ndarray, points: np.ndarray, lines: np.nd
                   weights: np.ndarray, lo: int, hi: int, f_scale: float, iterations: int, normal_out: np.ndarray,
                   variance_out: np.ndarray) -> None:
     """``refine_poses_kernel`` for one pose R (3, 3), t (3,) (in place) on the points lo:hi;
-    normal_out (6, 6), variance_out (1,)."""
-    jac = np.empty(6)
+    normal_out (6, 6), variance_out (1,). The normal matrix's lower triangle and the gradient
+    are summed in locals, each in the same order as into the arrays: the same bits, while
+    array elements were loaded and stored at every point (the edge alignment 5 % faster)."""
     hessian = np.empty((6, 6))
     gradient = np.empty(6)
     step = np.empty(6)
     turned = np.empty((3, 3))
     for _ in range(iterations):
-        hessian[:] = 0.0
-        gradient[:] = 0.0
+        h00 = h10 = h11 = h20 = h21 = h22 = h30 = h31 = h32 = h33 = 0.0
+        h40 = h41 = h42 = h43 = h44 = h50 = h51 = h52 = h53 = h54 = h55 = 0.0
+        b0 = b1 = b2 = b3 = b4 = b5 = 0.0
         weighted_squares = 0.0
         for n in range(lo, hi):
             px, py, pz = points[n, 0], points[n, 1], points[n, 2]
@@ -111,15 +113,46 @@ def _gauss_newton(R: np.ndarray, t: np.ndarray, points: np.ndarray, lines: np.nd
             residual = along + lines[k, 2]
             # d residual / d X_cam = g, chained through X_cam = exp(w) R X + t
             g0, g1, g2 = nx / z, ny / z, -along / z
-            jac[0], jac[1], jac[2] = r1 * g2 - r2 * g1, r2 * g0 - r0 * g2, r0 * g1 - r1 * g0
-            jac[3], jac[4], jac[5] = g0, g1, g2
+            j0, j1, j2 = r1 * g2 - r2 * g1, r2 * g0 - r0 * g2, r0 * g1 - r1 * g0
+            j3, j4, j5 = g0, g1, g2
             weight = f_scale / max(abs(residual), f_scale) * weights[k]  # Huber
             weighted_squares += weight * residual * residual
-            for i in range(6):
-                wj = weight * jac[i]
-                gradient[i] -= wj * residual
-                for j in range(i + 1):
-                    hessian[i, j] += wj * jac[j]
+            w0, w1, w2, w3, w4, w5 = weight * j0, weight * j1, weight * j2, weight * j3, weight * j4, weight * j5
+            b0 -= w0 * residual
+            b1 -= w1 * residual
+            b2 -= w2 * residual
+            b3 -= w3 * residual
+            b4 -= w4 * residual
+            b5 -= w5 * residual
+            h00 += w0 * j0
+            h10 += w1 * j0
+            h11 += w1 * j1
+            h20 += w2 * j0
+            h21 += w2 * j1
+            h22 += w2 * j2
+            h30 += w3 * j0
+            h31 += w3 * j1
+            h32 += w3 * j2
+            h33 += w3 * j3
+            h40 += w4 * j0
+            h41 += w4 * j1
+            h42 += w4 * j2
+            h43 += w4 * j3
+            h44 += w4 * j4
+            h50 += w5 * j0
+            h51 += w5 * j1
+            h52 += w5 * j2
+            h53 += w5 * j3
+            h54 += w5 * j4
+            h55 += w5 * j5
+        gradient[0], gradient[1], gradient[2], gradient[3], gradient[4], gradient[5] = b0, b1, b2, b3, b4, b5
+        hessian[0, 0] = h00
+        hessian[1, 0], hessian[1, 1] = h10, h11
+        hessian[2, 0], hessian[2, 1], hessian[2, 2] = h20, h21, h22
+        hessian[3, 0], hessian[3, 1], hessian[3, 2], hessian[3, 3] = h30, h31, h32, h33
+        hessian[4, 0], hessian[4, 1], hessian[4, 2], hessian[4, 3], hessian[4, 4] = h40, h41, h42, h43, h44
+        hessian[5, 0], hessian[5, 1], hessian[5, 2], hessian[5, 3], hessian[5, 4], hessian[5, 5] = \
+            h50, h51, h52, h53, h54, h55
         for i in range(6):
             for j in range(i):
                 hessian[j, i] = hessian[i, j]
