@@ -621,3 +621,21 @@ def test_supports_of_a_batch_are_each_pose_alone(evidence_image):
     together = evidence.supports(np.concatenate(models), spans, 2.0)
     assert [float(s) for s in together] == [float(evidence.supports(m, np.array([0, len(m)]), 2.0)[0])
                                             for m in models]
+
+
+def test_scores_of_a_batch_are_each_poses_shares_score_to_the_bit():
+    rng = np.random.default_rng(3)
+    n = 5000
+    length, seen, probes = rng.uniform(50, 3000, n), rng.integers(0, 400, n), rng.integers(0, 200, n)
+    counts = np.stack([length, rng.random(n) * length, rng.random(n) * 0.3 * length, seen,
+                       np.floor(rng.random(n) * seen), probes, np.floor(rng.random(n) * probes),
+                       rng.random(n) * 0.3 * probes], axis=1)
+    counts[::5, 0] = 0.0  # no model length: zeros
+    counts[::7, 3] = counts[::7, 4] = 0.0  # no edge pixel seen
+    counts[::11, 1] = counts[::11, 2]  # confirmed exactly as chance would
+    counts[::13, 1] = counts[::13, 0]  # all confirmed: the capped share
+    counts[::17, 5:] = 0.0  # no run-on probe
+    evidence = scoring.EdgeEvidence.__new__(scoring.EdgeEvidence)  # scores_of reads the class's constants only
+    scores = evidence.scores_of(counts)
+    assert np.count_nonzero(scores) > n // 2
+    assert scores.tobytes() == np.array([evidence.shares_of(c).score for c in counts]).tobytes()

@@ -64,7 +64,7 @@ def pose_scores(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame"
     spans[ahead + 1] = np.bincount(pose_of_row, minlength=len(ahead))
     counts = frame.evidence.counts(model_px, np.cumsum(spans), p.inlier_pixels, p.min_margin_pixels,
                                    p.min_size_pixels, graph.seg_kind[rows] != SHARP, p.outline_pixels, p.seen_pixels)
-    return np.array([frame.evidence.shares_of(c).score for c in counts])
+    return frame.evidence.scores_of(counts)
 
 
 def scored_tolerances(graph: AspectGraph, p: PoseParams) -> tuple[float, ...]:
@@ -185,6 +185,11 @@ def beyond_chance(confirmed: float, expected: float, length: float) -> float:
     """The a-contrario share: of ``length`` (model points, or pixels of model length), what
     is confirmed beyond the ``expected`` amount chance confirms there, in [0, 1]."""
     return float(max(confirmed - expected, 0.0) / max(length - expected, 1e-12))
+
+
+def _beyond_chance(confirmed: np.ndarray, expected: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """``beyond_chance`` of arrays, element by element."""
+    return np.maximum(confirmed - expected, 0.0) / np.maximum(length - expected, 1e-12)
 
 
 def kl_divergence(share: float, chance: float) -> float:
@@ -579,6 +584,26 @@ class EdgeEvidence:
                       explained=float(explained / seen_edges) if seen_edges > 0 else 0.0,
                       significance=1.0 - float(np.exp(-surprise / self.SIGNIFICANT_PIXELS)),
                       run_on=beyond_chance(ran_on, ran_by_chance, probes))
+
+    def scores_of(self, counts: np.ndarray) -> np.ndarray:
+        """(B,) ``Shares.score`` of ``shares_of`` for B poses' sums (B, 8), to the bit: the same
+        operations in the same order on arrays (``pose_scores`` asks for ~800 an occluded image,
+        whose Python one pose at a time held the GIL for 4-5 ms)."""
+        length, confirmed, by_chance, seen_edges, explained, probes, ran_on, ran_by_chance = np.asarray(counts).T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            share, chance = confirmed / length, by_chance / length
+            # ``kl_divergence``, where the share exceeds the chance
+            capped, floored = np.minimum(share, 1.0 - 1e-12), np.maximum(chance, 1e-12)
+            kl = np.where(share <= chance, 0.0, capped * np.log(capped / floored)
+                          + (1.0 - capped) * np.log((1.0 - capped) / (1.0 - floored)))
+            surprise = length * kl
+            confirmed_share = _beyond_chance(confirmed, by_chance, length)
+            explained_share = np.where(seen_edges > 0, explained / seen_edges, 0.0)
+            significance = 1.0 - np.exp(-surprise / self.SIGNIFICANT_PIXELS)
+            run_on = _beyond_chance(ran_on, ran_by_chance, probes)
+            f = 2 * confirmed_share * explained_share / np.maximum(confirmed_share + explained_share, 1e-12)
+            score = f * significance * np.maximum(1.0 - self.RUN_ON_WEIGHT * run_on, 0.0)
+        return np.where(length <= 0, 0.0, score)
 
     def counted_pixels(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float,
                        soft: np.ndarray | None = None, soft_tolerance_px: float | None = None,
