@@ -90,6 +90,8 @@ ALIGN_MIN_GAIN = 0.05
 #: the polish on edge pixels: the line refinement leaves the pose within a few pixels, which
 #: 3 pairings at ``pose.inlier_pixels`` close
 POLISH_ROUNDS = 3
+#: then this many pairings within ``pose.polish_fine_pixels``
+POLISH_FINE_ROUNDS = 2
 #: the polish is kept unless the score drops by more than this: a drop that large means it
 #: pulled the pose onto soft or biased edges, while a smaller one is the score's pixel noise
 #: in depth on a small part, where the polish, not the score, pins the depth (from the truth
@@ -252,6 +254,12 @@ def coarse_to_fine_radii(graph: AspectGraph, R: np.ndarray, t: np.ndarray, camer
     steps = np.arange(halvings.max(initial=0), -1, -1)
     radii = np.where(steps[None] <= halvings[:, None], inlier_px * 2.0 ** steps[None], 0.0)
     return np.repeat(radii, ALIGN_PASSES, axis=1)
+
+
+def polish_radii(p: PoseParams) -> np.ndarray:
+    """The polish's pairing radii, pixels: ``POLISH_ROUNDS`` at ``pose.inlier_pixels``, then
+    ``POLISH_FINE_ROUNDS`` at ``pose.polish_fine_pixels`` (0, skipped by the kernel, turns them off)."""
+    return np.array([p.inlier_pixels] * POLISH_ROUNDS + [p.polish_fine_pixels] * POLISH_FINE_ROUNDS, float)
 
 
 def hypothesis_rounds(count: int) -> tuple[float, ...]:
@@ -497,7 +505,7 @@ class PoseRefiner:
         def chunk(which: slice) -> tuple[np.ndarray, ...]:
             R, t = np.array([c.R for c in chosen[which]]), np.array([c.t for c in chosen[which]])
             covariance = np.full((len(R), 6, 6), np.nan)
-            R, t = align_on_edges(R, t, self.graph, frame, radii=np.full((len(R), POLISH_ROUNDS), p.inlier_pixels),
+            R, t = align_on_edges(R, t, self.graph, frame, radii=np.tile(polish_radii(p), (len(R), 1)),
                                   covariance_out=covariance)
             return R, t, pose_scores(self.graph, R, t, frame, p), covariance
 
