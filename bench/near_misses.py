@@ -3,12 +3,13 @@ of a saved accuracy run, their errors split in the camera frame, and where the r
 takes the truth itself.
 
     python bench/near_misses.py RESULTS.json [MORE.json ...] [--max-rotation 10] [--max-add-s 0.1]
-                                [--polish-rounds 10]
+                                [--polish-rounds 10] [--set group.key=value ...]
 
 A near miss is an image of the runs (bench/accuracy.py's cached scenes, varied look, seed 100)
 whose pose was reported found and is not right up to symmetry, within ``--max-rotation``
 degrees and ADD-S ``--max-add-s`` diameters of the truth. Each is estimated again with
-default parameters (the estimator repeats to the bit) and its error split, against the
+the runs' parameters (the defaults with the flat overrides given; the estimator repeats to
+the bit) and its error split, against the
 equivalent truth nearest it (``symmetric_truth``), into
 
 - ``depth``: the part's centre moved along the truth's line of sight, in success bounds
@@ -49,14 +50,13 @@ import numpy as np  # noqa: E402
 
 from collections import Counter
 
-from bench.accuracy import bench_steps, cached_frames, graph_and_model, scene_path  # noqa: E402
+from bench.accuracy import bench_steps, cached_frames, graph_and_model, overridden_params, scene_path  # noqa: E402
 from bench.occlusion_diagnosis import refined_truth  # noqa: E402
 from brepose_ros.evaluation.metrics import pose_errors, symmetric_truth  # noqa: E402
 from brepose_ros.geometry import rotation_angle_deg  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.refinement import Candidate, align_on_edges  # noqa: E402
 from brepose_ros.online.scoring import pose_scores  # noqa: E402
-from brepose_ros.params import EstimatorParams  # noqa: E402
 
 #: CONVENTIONS.md's translation bound, a share of the diameter
 BOUND = 0.05
@@ -124,8 +124,9 @@ def main(argv=None) -> int:
     parser.add_argument("--max-rotation", type=float, default=10.0, help="degrees")
     parser.add_argument("--max-add-s", type=float, default=0.1, help="diameters")
     parser.add_argument("--polish-rounds", type=int, default=10, help="pairings of the unguarded fixed point")
+    parser.add_argument("--set", nargs="*", default=[], help="flat parameters, e.g. pose.polish_fine_pixels=0")
     args = parser.parse_args(argv)
-    params = EstimatorParams()
+    params = overridden_params(args.set)
     p = params.pose
     cache = REPO / "data" / "bench"
     misses = near_misses(args.results, args.max_rotation, args.max_add_s)
