@@ -166,10 +166,10 @@ class PoseParams(Ranged):
         "face turns dark), pixels; 2, as the sharp edges: 3 cut LM-O's renders from 19 to 8 % ADD(-S) with the "
         "render bench level (docs/results/real_lmo.md)", 2.0, 0.1, 50.0)
     polish_fine_pixels: float = doc(
-        "radius of the polish's last two pairings on edge pixels, after its three at inlier_pixels, pixels: the 2 px "
-        "pairing settles a small, blurred part's depth where nearby parallel edges pull it (from the truth 92 % of 480 "
-        "bench images stay right), the finer pairings bring the near misses' depth in (bench/near_misses.py, "
-        "docs/results/refinement.md); 0 turns them off", 1.0, 0.0, 50.0)
+        "radius of the polish's last two pairings on edge pixels, after its three at inlier_pixels, pixels: at 2 px "
+        "the polish leaves a small, blurred part's depth too far (from the truth 40 of 480 bench images leave the "
+        "bounds, 29 on the small or blurred images 7 and 14); with them the bench's right 213 -> 216 of 480, wrong "
+        "reported 72 -> 71 (bench/near_misses.py, docs/results/refinement.md); 0 turns them off", 1.0, 0.0, 50.0)
     seen_pixels: float = doc(
         "a cell of the score's explained share also counts as seen where half its model length lies this near like "
         "edges beyond chance, pixels: a pose turned a few degrees off the part's features has their edges beside "

@@ -35,8 +35,9 @@ higher (``PoseRefiner.realign``; docs/results/refinement.md).
 
 The best few distinct poses then climb over neighbouring views of the graph, in step
 (``PoseRefiner.climb_together``); the best climbed is polished on the Canny edge pixels at
-the final tolerance (``align_on_edges``), which hear edges the line detector missed, and the
-polish is kept unless the score clearly drops. The estimator polishes the other climbed
+the final tolerance and then twice within ``pose.polish_fine_pixels`` (``align_on_edges``,
+``polish_radii``), which hear edges the line detector missed, and the polish is kept unless
+the score clearly drops. The estimator polishes the other climbed
 poses too, as rivals of the best for ``symmetry.check_rivals`` (``PoseRefiner.finalists``).
 """
 from __future__ import annotations
