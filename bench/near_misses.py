@@ -41,14 +41,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections import Counter
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
-
-from collections import Counter
 
 from bench.accuracy import bench_steps, cached_frames, graph_and_model, overridden_params, scene_path  # noqa: E402
 from bench.occlusion_diagnosis import refined_truth  # noqa: E402
