@@ -27,7 +27,7 @@ from .messages import (COMPRESSED_SUFFIX, DIAGNOSTICS_TOPIC, PUBLISHER_QOS, came
                        image_msg, make_executor, pose_from_msg, stamp_from_ns, stamp_ns, status_values)
 
 TRANSPORTS = ("raw", "compressed")
-#: how long a reliable player waits for the node's subscription to turn reliable once
+#: how long a player waits for the node's subscription to follow its reliability once
 #: matched (the node follows its publishers within a quarter of a second, node.py)
 QOS_SETTLE = 2.0
 
@@ -187,20 +187,22 @@ class Player:
         self.statuses = statuses
 
     def wait_for_node(self, timeout: float = 10.0, nodes: int = 1) -> None:
-        """Wait until ``nodes`` nodes subscribe to the images and we to their diagnostics; a
-        reliable player also gives the nodes' subscriptions a moment to follow it to reliable."""
+        """Wait until ``nodes`` nodes subscribe to the images and we to their diagnostics, and
+        give the nodes' subscriptions a moment to follow the player's reliability: a node left
+        reliable by an earlier reliable player does not match a best-effort one, and the frames
+        published meanwhile vanish without the reader knowing of them (nor reporting them lost)."""
         wait_until(lambda: self.image_pub.get_subscription_count() >= nodes
                    and self.diagnostics.subscription.get_publisher_count() >= nodes,
                    timeout, f"{nodes} node(s) subscribed to {self.image_pub.topic_name} and publishing diagnostics")
-        if self.reliable:
-            try:
-                wait_until(self._subscribers_reliable, QOS_SETTLE, "reliable subscriptions")
-            except TimeoutError:
-                pass  # a node told to stay best effort: it still gets what arrives
+        try:
+            wait_until(self._subscribers_follow, QOS_SETTLE, "subscriptions following the player's reliability")
+        except TimeoutError:
+            pass  # a node told to keep its reliability: it still gets what its QoS matches
 
-    def _subscribers_reliable(self) -> bool:
+    def _subscribers_follow(self) -> bool:
+        wanted = ReliabilityPolicy.RELIABLE if self.reliable else ReliabilityPolicy.BEST_EFFORT
         infos = self.node.get_subscriptions_info_by_topic(self.image_pub.topic_name)
-        return bool(infos) and all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
+        return bool(infos) and all(i.qos_profile.reliability == wanted for i in infos)
 
     def play(self, frames: Iterable, mode: str = "lockstep", speed: float = 1.0,
              timeout: float = 10.0) -> Playback:
