@@ -177,29 +177,32 @@ class Shares(NamedTuple):
     def score(self) -> float:
         """The F-measure of the two shares, weighed by the significance and lowered by the
         run-on (``EdgeEvidence.RUN_ON_WEIGHT``)."""
-        f = 2 * self.confirmed * self.explained / max(self.confirmed + self.explained, 1e-12)
-        return f * self.significance * max(1.0 - EdgeEvidence.RUN_ON_WEIGHT * self.run_on, 0.0)
+        return float(combined_score(*self))
 
 
-def beyond_chance(confirmed: float, expected: float, length: float) -> float:
+def combined_score(confirmed: float | np.ndarray, explained: float | np.ndarray, significance: float | np.ndarray,
+                   run_on: float | np.ndarray) -> float | np.ndarray:
+    """``Shares.score`` of floats or, element by element, of arrays."""
+    f = 2 * confirmed * explained / np.maximum(confirmed + explained, 1e-12)
+    return f * significance * np.maximum(1.0 - EdgeEvidence.RUN_ON_WEIGHT * run_on, 0.0)
+
+
+def beyond_chance(confirmed: float | np.ndarray, expected: float | np.ndarray,
+                  length: float | np.ndarray) -> float | np.ndarray:
     """The a-contrario share: of ``length`` (model points, or pixels of model length), what
-    is confirmed beyond the ``expected`` amount chance confirms there, in [0, 1]."""
-    return float(max(confirmed - expected, 0.0) / max(length - expected, 1e-12))
-
-
-def _beyond_chance(confirmed: np.ndarray, expected: np.ndarray, length: np.ndarray) -> np.ndarray:
-    """``beyond_chance`` of arrays, element by element."""
+    is confirmed beyond the ``expected`` amount chance confirms there, in [0, 1]; of floats
+    or, element by element, of arrays."""
     return np.maximum(confirmed - expected, 0.0) / np.maximum(length - expected, 1e-12)
 
 
-def kl_divergence(share: float, chance: float) -> float:
+def kl_divergence(share: float | np.ndarray, chance: float | np.ndarray) -> np.ndarray:
     """KL divergence (nats) of a Bernoulli of ``share`` from one of ``chance``, 0 when the
     share is no more than chance: per sample, the exponent of the Chernoff bound on the
-    probability that chance alone confirms this share."""
-    if share <= chance:
-        return 0.0
-    share, chance = min(share, 1.0 - 1e-12), max(chance, 1e-12)
-    return float(share * np.log(share / chance) + (1.0 - share) * np.log((1.0 - share) / (1.0 - chance)))
+    probability that chance alone confirms this share. Element by element on arrays."""
+    capped, floored = np.minimum(share, 1.0 - 1e-12), np.maximum(chance, 1e-12)
+    with np.errstate(divide="ignore", invalid="ignore"):  # where share <= chance, dropped below
+        kl = capped * np.log(capped / floored) + (1.0 - capped) * np.log((1.0 - capped) / (1.0 - floored))
+    return np.where(share <= chance, 0.0, kl)
 
 
 class LookUpMaps(NamedTuple):
@@ -420,7 +423,7 @@ class EdgeEvidence:
         h, w = self.shape
         x, y = np.clip(np.rint(pieces.mean(axis=1)).astype(int) + 1, 0, [w + 1, h + 1]).T
         near, chance = self._holding((tolerance_px,))[0].at(self.orientation_bin(pieces), x, y)
-        return beyond_chance(near.sum(), chance.sum(), len(pieces))
+        return float(beyond_chance(near.sum(), chance.sum(), len(pieces)))
 
     def maps(self, tolerances: tuple[float, ...]) -> "LookUpMaps":
         """The ``LookUpMaps`` at ``tolerances``: per tolerance and direction bin, the pixels
@@ -576,34 +579,24 @@ class EdgeEvidence:
 
     def shares_of(self, counts: np.ndarray) -> "Shares":
         """The ``Shares`` of a pose from its eight sums (``counts``)."""
-        length, confirmed, by_chance, seen_edges, explained, probes, ran_on, ran_by_chance = counts
-        if length <= 0:
-            return Shares(0.0, 0.0, 0.0)
-        surprise = length * kl_divergence(confirmed / length, by_chance / length)
-        return Shares(confirmed=beyond_chance(confirmed, by_chance, length),
-                      explained=float(explained / seen_edges) if seen_edges > 0 else 0.0,
-                      significance=1.0 - float(np.exp(-surprise / self.SIGNIFICANT_PIXELS)),
-                      run_on=beyond_chance(ran_on, ran_by_chance, probes))
+        return Shares(*(float(share[0]) for share in self._shares(np.asarray(counts)[None])))
 
     def scores_of(self, counts: np.ndarray) -> np.ndarray:
-        """(B,) ``Shares.score`` of ``shares_of`` for B poses' sums (B, 8), to the bit: the same
-        operations in the same order on arrays (``pose_scores`` asks for ~800 an occluded image,
-        whose Python one pose at a time held the GIL for 4-5 ms)."""
-        length, confirmed, by_chance, seen_edges, explained, probes, ran_on, ran_by_chance = np.asarray(counts).T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            share, chance = confirmed / length, by_chance / length
-            # ``kl_divergence``, where the share exceeds the chance
-            capped, floored = np.minimum(share, 1.0 - 1e-12), np.maximum(chance, 1e-12)
-            kl = np.where(share <= chance, 0.0, capped * np.log(capped / floored)
-                          + (1.0 - capped) * np.log((1.0 - capped) / (1.0 - floored)))
-            surprise = length * kl
-            confirmed_share = _beyond_chance(confirmed, by_chance, length)
-            explained_share = np.where(seen_edges > 0, explained / seen_edges, 0.0)
-            significance = 1.0 - np.exp(-surprise / self.SIGNIFICANT_PIXELS)
-            run_on = _beyond_chance(ran_on, ran_by_chance, probes)
-            f = 2 * confirmed_share * explained_share / np.maximum(confirmed_share + explained_share, 1e-12)
-            score = f * significance * np.maximum(1.0 - self.RUN_ON_WEIGHT * run_on, 0.0)
-        return np.where(length <= 0, 0.0, score)
+        """(B,) ``Shares.score`` of B poses' sums (B, 8) at once (``pose_scores`` asks for
+        ~800 an occluded image, whose Python one pose at a time held the GIL for 4-5 ms)."""
+        return combined_score(*self._shares(np.asarray(counts)))
+
+    def _shares(self, counts: np.ndarray) -> np.ndarray:
+        """(4, B): the ``Shares`` fields of B poses' sums (B, 8), all 0 for a pose without
+        model length."""
+        length, confirmed, by_chance, seen_edges, explained, probes, ran_on, ran_by_chance = counts.T
+        with np.errstate(divide="ignore", invalid="ignore"):  # the rows without length, zeroed below
+            surprise = length * kl_divergence(confirmed / length, by_chance / length)
+            shares = np.array([beyond_chance(confirmed, by_chance, length),
+                               np.where(seen_edges > 0, explained / seen_edges, 0.0),
+                               1.0 - np.exp(-surprise / self.SIGNIFICANT_PIXELS),
+                               beyond_chance(ran_on, ran_by_chance, probes)])
+        return np.where(length > 0, shares, 0.0)
 
     def counted_pixels(self, model_px: np.ndarray, tolerance_px: float, min_margin_px: float,
                        soft: np.ndarray | None = None, soft_tolerance_px: float | None = None,
