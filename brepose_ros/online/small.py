@@ -50,10 +50,16 @@ def patch_sizes(span: float, smallest_searched: float, narrowest_share: float, s
     and below the sizes the regular search's smallest covers (within half a step of it).
     Empty when the regular sizes cover the patch."""
     low = max(span, smallest_pose)
-    high = min(span / max(narrowest_share, 1e-6), smallest_searched / np.sqrt(step))
+    high = min(span / max(narrowest_share, 1e-6), largest_patch_size(smallest_searched, step))
     if high < low:
         return np.zeros(0)
     return np.geomspace(low, high, int(np.ceil(np.log(high / low) / np.log(step))) + 1)
+
+
+def largest_patch_size(smallest_searched: float, step: float) -> float:
+    """The largest part diameter, pixels, ``patch_sizes`` tries: half a step below the regular
+    search's smallest size."""
+    return smallest_searched / np.sqrt(step)
 
 
 def small_part_seeds(frame: Frame, groups: list[np.ndarray], p: SearchParams, search: TemplateSearch,
@@ -69,11 +75,12 @@ def small_part_seeds(frame: Frame, groups: list[np.ndarray], p: SearchParams, se
     h, w = frame.evidence.shape
     middles = frame.segments_px.mean(axis=1)
     lengths = np.linalg.norm(frame.segments_px[:, 1] - frame.segments_px[:, 0], axis=1)
+    largest = largest_patch_size(regular[0], p.size_step)
     seeds: list[Hypothesis] = []
     done: set[tuple[int, int, int, int]] = set()
     for indices in groups:
         ends = frame.segments_px[indices].reshape(-1, 2)
-        if np.ptp(ends, axis=0).max() > regular[0] / np.sqrt(p.size_step):
+        if np.ptp(ends, axis=0).max() > largest:
             continue  # wider than any size ``patch_sizes`` allows, its widest span (K^2) not needed
         sizes = patch_sizes(widest_span(ends), regular[0], search.library.narrowest_span_share, smallest_pose,
                             p.size_step)
