@@ -202,7 +202,8 @@ class Calibration:
         if not (_finite(self.prior) and 0.0 < self.prior < 1.0):
             raise ValueError(f"prior must be a number strictly between 0 and 1, got {self.prior!r}")
 
-    def probability(self, x: np.ndarray, prior: float | None = None, tied=None) -> np.ndarray:
+    def probability(self, x: np.ndarray, prior: float | None = None,
+                    tied: np.ndarray | list[bool] | None = None) -> np.ndarray:
         """The confidence of rows of raw features (N, F) in ``features`` order where a share
         ``prior`` of the images hold the part (None: the fit's own mix); the rows ``tied``
         (N,) with a twin (``Estimate.twin_tie``; None: none) are right at most ``COIN_TOSS``
