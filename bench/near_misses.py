@@ -47,6 +47,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.accuracy import bench_steps, cached_frames, graph_and_model, overridden_params, scene_path  # noqa: E402
@@ -81,17 +82,11 @@ def split_error(R, t, R_true, t_true, graph, model) -> dict:
     ray = c_true / np.linalg.norm(c_true)
     moved = c - c_true
     along = float(moved @ ray)
-    turn = R @ R_true.T
-    angle = np.radians(rotation_angle_deg(R, R_true))
-    if angle > 1e-9:
-        axis = np.array([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]])
-        w = angle * axis / np.linalg.norm(axis)
-    else:
-        w = np.zeros(3)
+    w = cv2.Rodrigues(R @ R_true.T)[0].ravel()  # the turn's axis times its angle, camera frame
     roll = float(w @ ray)
     lever = (R - R_true) @ graph.model_center  # the origin's move from turning about the centre
     return {"depth": along / bound, "lateral": float(np.linalg.norm(moved - along * ray)) / bound,
-            "rotation": float(np.degrees(angle)), "roll": float(np.degrees(roll)),
+            "rotation": rotation_angle_deg(R, R_true), "roll": float(np.degrees(roll)),
             "tilt": float(np.degrees(np.linalg.norm(w - roll * ray))),
             "translation": float(np.linalg.norm(t - t_true)) / bound,
             "lever": float(np.linalg.norm(lever)) / max(float(np.linalg.norm(t - t_true)), 1e-12)}
