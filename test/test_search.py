@@ -97,7 +97,7 @@ def test_the_chance_of_a_cell_is_its_bins_share_of_set_cells_in_the_window_about
     h, w, pad = 9, 13, 4
     maps = np.ones((search.BINS, h + 2 * pad, w + 2 * pad), np.uint8)  # the padding set: not counted
     maps[:, pad:pad + h, pad:pad + w] = rng.random((search.BINS, h, w)) < 0.3
-    response = search.ResponseMaps(maps, pad, 4, (h, w), search.block_bounds(maps))
+    response = search.ResponseMaps(maps, pad, 4, (h, w), search.block_bounds(maps), (0, 0), (h, w))
     windows = [3, 7, 31]
     chances = response.chances(windows)
     cells = maps[:, pad:pad + h, pad:pad + w].astype(float)

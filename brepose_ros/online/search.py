@@ -159,8 +159,8 @@ class ResponseMaps:
     bounds: np.ndarray
     #: the image cell (y, x) of the maps' first unpadded cell, and the whole image's coarse
     #: (H, W): maps of a box cover only the cells whose templates can reach its edges
-    origin: tuple[int, int] = (0, 0)
-    image_shape: tuple[int, int] | None = None
+    origin: tuple[int, int]
+    image_shape: tuple[int, int]
 
     @classmethod
     def of(cls, evidence: EdgeEvidence, factor: int, spread: int, pad: int,
@@ -640,7 +640,7 @@ def probe_share(maps: ResponseMaps, p: SearchParams) -> float:
     further: ``min_coarse_share``, or on maps so dense that random points hit nearly that
     often (texture) their density plus ``CHANCE_MARGIN``."""
     hc, wc = maps.shape
-    image_cells = np.prod(maps.image_shape or maps.shape)  # a box's maps: the whole image's density
+    image_cells = np.prod(maps.image_shape)  # a box's maps: the whole image's density
     density = float(np.count_nonzero(maps.maps[:, maps.pad:maps.pad + hc, maps.pad:maps.pad + wc])) \
         / (maps.maps.shape[0] * image_cells)
     return max(p.min_coarse_share, density + CHANCE_MARGIN)
