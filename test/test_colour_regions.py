@@ -10,7 +10,7 @@ import pytest
 
 from brepose_ros.aspect_graph import AspectGraph, AspectGraphError
 from brepose_ros.chromaticity import BINS, surface_histogram
-from brepose_ros.online.colour_regions import MARGIN_PIXELS, colour_regions
+from brepose_ros.online.colour_regions import MARGIN_PIXELS, ONE_PLACE_SHARE, colour_places, colour_regions
 from test_aspect_graph import rewritten
 from graph_helpers import one_view_graph
 
@@ -53,6 +53,35 @@ def test_the_regions_hold_the_part_and_its_outline_and_drop_the_other_objects():
     # grown by MARGIN_PIXELS, not more: nothing farther from the disc than that
     far = cv2.dilate(part.astype(np.uint8), np.ones((2 * MARGIN_PIXELS + 5,) * 2, np.uint8)) == 0
     assert not regions[far].any()
+
+
+def test_the_places_of_the_regions_ranked_by_the_colour_they_hold():
+    """The scene's brown disc and two smaller ones: the regions split into three places,
+    ranked by the part's colour they hold (the largest disc first), at most ``count``; regions
+    that are one place, or nearly all one, are no places to search again."""
+    image, part, _ = scene()
+    discs = [part]
+    for centre, radius in (((520, 90), 30), ((480, 380), 38)):
+        disc = cv2.circle(np.zeros((480, 640), np.uint8), centre, radius, 1, -1) > 0
+        image[disc] = BROWN
+        discs.append(disc)
+    regions = colour_regions(image, model_histogram(), 0.5, 400)
+    places = colour_places(image, model_histogram(), regions, 3)
+    assert len(places) == 3
+    for place, disc in zip(places, [discs[0], discs[2], discs[1]]):
+        near = cv2.dilate(disc.astype(np.uint8), np.ones((2 * MARGIN_PIXELS + 3,) * 2, np.uint8)) > 0
+        assert place[disc].all() and not (place & ~near).any()
+    assert all(np.array_equal(a, b) for a, b in zip(colour_places(image, model_histogram(), regions, 2), places))
+    assert len(colour_places(image, model_histogram(), regions, 2)) == 2
+    assert colour_places(image, model_histogram(), regions, 0) == []
+    one, _, _ = scene()
+    assert colour_places(one, model_histogram(), colour_regions(one, model_histogram(), 0.5, 400), 3) == []
+    # the first disc grown to nearly all the regions: they are one place (a grey part's desk)
+    cv2.circle(image, (200, 240), 180, BROWN, -1)
+    regions = colour_regions(image, model_histogram(), 0.5, 400)
+    largest = regions & (cv2.circle(np.zeros((480, 640), np.uint8), (200, 240), 190, 1, -1) > 0)
+    assert largest.sum() > ONE_PLACE_SHARE * regions.sum() and (regions & ~largest).any()
+    assert colour_places(image, model_histogram(), regions, 3) == []
 
 
 def test_no_regions_without_a_colour_to_look_for():
@@ -167,3 +196,45 @@ def test_within_its_colour_regions_the_search_finds_a_part_smaller_than_the_defa
     (centre, found), = search.places(search.coarse(frame, p), 1)
     assert np.hypot(*(centre - camera.project(part_t[None])[0])) < 0.25 * size, centre  # within the part
     assert size / 1.3 < found < 1.3 * size, found
+
+
+def test_the_estimate_within_each_colour_place_never_scores_below_the_whole_regions(coloured_bracket, monkeypatch):
+    """The brown bracket and a brown box of like size beside it: the regions split into two
+    places, the estimate is made again within each (``edges.colour_places``), and the pose
+    kept scores at least the whole regions' one on the whole regions' edges and is the
+    bracket's; with ``colour_places`` 0 no place is estimated."""
+    from brepose_ros.camera import Camera
+    from brepose_ros.geometry import look_at_rotation, normalize
+    from brepose_ros.online import estimator as estimator_module
+    from brepose_ros.online.estimator import Estimator
+    from brepose_ros.params import EstimatorParams
+    from brepose_ros.synthetic.render import Material, Placed, render
+
+    graph, mesh = coloured_bracket
+    camera = Camera(600.0, 600.0, 320.0, 240.0, 640, 480)
+    R = look_at_rotation(normalize(np.array([0.4, -0.6, -1.0])))
+    part_t = np.array([-0.08, 0.0, 0.55])
+    desk = np.array(DESK, np.float32) * np.random.default_rng(4).uniform(0.7, 1.1, (480, 640, 1))
+    desk[180:260, 430:530] = np.array(BROWN, np.float32) * 0.9  # a brown box of like size
+    brown = Material(color=tuple(np.array(BROWN) / 255))
+    image = render(camera, [Placed(mesh, R, part_t - R @ graph.model_center, brown)], background=desk.astype(np.uint8),
+                   color=True).image
+    counted = []
+
+    def places(*args):
+        counted.append(colour_places(*args))
+        return counted[-1]
+
+    monkeypatch.setattr(estimator_module, "colour_places", places)
+    scores = {}
+    for count in (0, 3):
+        estimator = Estimator(graph, EstimatorParams().with_flat({"edges.colour_places": count}))
+        try:
+            estimate = estimator.estimate(image, camera)
+        finally:
+            estimator.close()
+        centre = estimate.R @ graph.model_center + estimate.t
+        assert np.linalg.norm(centre - part_t) < 0.1 * graph.model_diameter, (count, centre, part_t)
+        scores[count] = estimate.score
+    assert [len(c) for c in counted] == [0, 2]
+    assert scores[3] >= scores[0]

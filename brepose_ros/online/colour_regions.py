@@ -14,6 +14,10 @@ dimmer light leaves alone. A pixel's likelihood is Swain and Ballard's histogram
 in the image scores its share of the model, so the regions stay small where the part's
 colour is rare and grow to most of the image where it is common (a grey part on a grey
 desk: nothing is lost, little is gained).
+
+The regions of a coloured part split into places (the part, its shadow, other things of
+like colour); ``colour_places`` ranks them by the part's colour they hold, for the estimate
+to be made again within each of the first few alone (``Estimator``, ``edges.colour_places``).
 """
 from __future__ import annotations
 
@@ -28,6 +32,10 @@ SMOOTHING_PIXELS = 5
 #: holes up to this many pixels (odd) in a region are closed: highlights and dark folds
 #: of the part leave a different chromaticity inside its outline
 CLOSING_PIXELS = 9
+#: regions whose largest place holds more than this share of their pixels are one place (a grey
+#: part's desk: 0.97-1.0 on the LM-O photos, a coloured part's largest 0.16-0.69): an estimate
+#: within it alone would repeat the whole regions' one
+ONE_PLACE_SHARE = 0.9
 #: regions grow by this many pixels: the part's outline edges lie on the border of its
 #: colour, blurred by the optics and by the edge stage's own blur
 MARGIN_PIXELS = 5
@@ -59,3 +67,15 @@ def colour_regions(image: np.ndarray, model_histogram: np.ndarray | None, thresh
     kept = np.isin(labels, large).astype(np.uint8)
     return cv2.dilate(kept, np.ones((2 * MARGIN_PIXELS + 1,) * 2, np.uint8)) > 0
 
+
+def colour_places(image: np.ndarray, model_histogram: np.ndarray, regions: np.ndarray, count: int) -> list[np.ndarray]:
+    """(H, W) bool masks of the 8-connected places of ``colour_regions``'s ``regions``, at most
+    ``count``, those holding the most of the part's colour (the sum of the pixels' likelihood)
+    first; none where the regions are one place (``ONE_PLACE_SHARE``)."""
+    places, labels, stats, _ = cv2.connectedComponentsWithStats(regions.astype(np.uint8), connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA]  # label 0 is the background
+    if count == 0 or areas.max(initial=0) > ONE_PLACE_SHARE * areas.sum():
+        return []
+    colour = np.bincount(labels.ravel(), weights=colour_likelihood(image, model_histogram).ravel(),
+                         minlength=places)[1:]
+    return [labels == label + 1 for label in np.argsort(-colour, kind="stable")[:count]]

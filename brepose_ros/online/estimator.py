@@ -22,7 +22,10 @@ Each stage lives in its own module; this one only wires them:
 4. ``refinement``: a first metric pose per hypothesis, refined on the image lines and
    scored on the edge pixels (``scoring``); the best few climbed over neighbouring views and
    polished on the edge pixels (the finalists), of which ``symmetry.check_rivals`` keeps the
-   best climbed or a near tie that the edges telling the two apart show by more
+   best climbed or a near tie that the edges telling the two apart show by more; where the
+   part's colour regions split into places, steps 1-4 again within each of the few holding
+   the most of its colour alone (``colour_regions.colour_places``), a pose found there kept
+   if it scores more on the whole regions' edges
 5. ``larger``: a pose scoring below ``search.enough_score`` against larger poses about its
    place, searched again (``pose.larger_check``, off by default)
 6. ``symmetry``: the pose against its twins under the part's near symmetries, on the
@@ -49,7 +52,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -63,9 +66,9 @@ from .larger import centre_distance, larger_pose, projected_place
 from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
-from .colour_regions import colour_regions
+from .colour_regions import colour_places, colour_regions
 from .confidence import load_calibration
-from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_shares, scored_tolerances
+from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_scores, pose_shares, scored_tolerances
 from .search import TemplateSearch
 from .small import small_part_seeds
 from .symmetry import check_rivals, check_twins
@@ -215,18 +218,13 @@ class Estimator:
         groups = region_groups(frame, p.matching)
         if paper_only:
             return self._paper_estimate(groups, frame, p, hypotheses, pool, not_found, clock)
-        climbs: dict = {}  # the view climbs made on this image (``PoseRefiner._climbed``)
-        candidates, best = self._candidates(frame, groups, p, hypotheses, search, pool, timings, clock, climbs)
-        if not candidates:
-            return not_found
-        clock = time.perf_counter()
+        best = self._chosen(frame, groups, p, hypotheses, search, pool, calibration, timings, clock)
         if best is None:
-            finalists = self._refiner.finalists(candidates, frame, p.pose, pool, climbs)
-            best = check_rivals(in_working_range(finalists, self.graph, p.pose) or finalists, self.graph, frame,
-                                p.pose)
-            if "small" in p.search.stages:
-                best = self._likelier_than_small(best, finalists, frame, p, search, calibration)
-            clock = _lap(timings, "refinement", clock)
+            return not_found
+        if regions is not None:
+            best = self._likelier_in_places(best, image, camera, regions, frame, p, hypotheses, search, pool,
+                                            calibration, timings)
+        clock = time.perf_counter()
         if p.pose.larger_check and search is not None and best.score < p.search.enough_score:
             best = larger_pose(best, self.graph, frame, p, search, hypotheses, self._refiner, pool)
             clock = _lap(timings, "larger", clock)
@@ -239,6 +237,49 @@ class Estimator:
         if is_found(estimate, p.pose):
             estimate.found, estimate.R, estimate.t, estimate.covariance = True, best.R, best.t, best.covariance
         return estimate
+
+    def _chosen(self, frame: Frame, groups: list, p: EstimatorParams, hypotheses: TetradHypotheses,
+                search: TemplateSearch | None, pool: WorkerPool, calibration, timings: dict,
+                clock: float) -> Candidate | None:
+        """The frame's pose before the larger and twin checks (steps 3-4): the best finalist of
+        the generators' candidates or a rival at its place, a small pose only where likelier
+        than the search's sizes' best; None without a candidate."""
+        climbs: dict = {}  # the view climbs made on this frame (``PoseRefiner._climbed``)
+        candidates, best = self._candidates(frame, groups, p, hypotheses, search, pool, timings, clock, climbs)
+        if not candidates:
+            return None
+        if best is None:
+            clock = time.perf_counter()
+            finalists = self._refiner.finalists(candidates, frame, p.pose, pool, climbs)
+            best = check_rivals(in_working_range(finalists, self.graph, p.pose) or finalists, self.graph, frame,
+                                p.pose)
+            if "small" in p.search.stages:
+                best = self._likelier_than_small(best, finalists, frame, p, search, calibration)
+            _lap(timings, "refinement", clock)
+        return best
+
+    def _likelier_in_places(self, best: Candidate, image: np.ndarray, camera: Camera, regions: np.ndarray,
+                            frame: Frame, p: EstimatorParams, hypotheses: TetradHypotheses,
+                            search: TemplateSearch | None, pool: WorkerPool, calibration,
+                            timings: dict) -> Candidate:
+        """``best``, or the pose chosen within one of the colour regions' places alone
+        (``colour_places``, ``edges.colour_places``) where it scores more on the whole regions'
+        ``frame``: on the LM-O photos the whole regions' search seeded no pose near 12 well-visible
+        cats, within the cat's own place 7 of them had a candidate near (docs/results/real_lmo.md)."""
+        for place in colour_places(image, self.graph.colour_histogram, regions, p.edges.colour_places):
+            clock = time.perf_counter()
+            within = Frame.detect(image, camera, p.edges, pool, scored_tolerances(self.graph, p.pose), place)[1]
+            clock = _lap(timings, "edges", clock)
+            if len(within.segments_px) < MIN_REGION_SEGMENTS:
+                continue
+            chosen = self._chosen(within, region_groups(within, p.matching), p, hypotheses, search, pool,
+                                  calibration, timings, clock)
+            if chosen is None:
+                continue
+            score = float(pose_scores(self.graph, chosen.R[None], chosen.t[None], frame, p.pose)[0])
+            if score > best.score:
+                best = replace(chosen, score=score)
+        return best
 
     def _described(self, best: Candidate, frame: Frame, p: EstimatorParams, calibration, margin: float | None = None,
                    timings: dict | None = None, tied: bool = False) -> Estimate:
