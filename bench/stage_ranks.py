@@ -14,8 +14,8 @@ pixels (``realign``), the starts climbed (``climb_together``).
 
 The chosen pose's hypothesis (the pose handed to the twin check) is traced to the batch it
 was verified in, and its ranks there printed (0 = best): ``job``, its (view, rotation) job's
-rank in its region's pre-filter shortlist (for the seeded and small stages its seed's rank
-in the search); ``pos``, its place in the batch handed to the refinement; ``first``,
+rank by the full chamfer score in its region's pre-filter shortlist (for the seeded and small
+stages its seed's rank among the search's seeds that gave a job); ``pos``, its place in the batch handed to the refinement; ``first``,
 ``line``, ``end``, by the score of its first pose, of its line end and of its end after
 ``realign`` (``rescued``: the aligned end replaced the line end). ``truth``: the same for the
 best-scoring candidate near the truth (bench/hypothesis_recall.py's ``near_truth``).
@@ -52,11 +52,14 @@ from brepose_ros.online import estimator as estimator_module  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.refinement import distinct_poses  # noqa: E402
 from brepose_ros.online.scoring import pose_scores  # noqa: E402
+from brepose_ros.online.workers import SERIAL  # noqa: E402
 from brepose_ros.viewsphere import fibonacci_step  # noqa: E402
 
 STAGES = ("tetrad", "windows", "seeded", "small", "final")
 COUNTS = ("jobs", "matched", "verified", "realigned", "climbed")
 RANKS = ("job", "pos", "first", "line", "end")
+#: the summary's two kinds of job rank, both the ranks' ``job``
+RANK_KEY = {"pre-filter": "job", "seed": "job"}
 
 
 class Watch:
@@ -74,6 +77,7 @@ class Watch:
         self._wrap(r, "_climbed", self._climbed)
         self._wrap(h, "shortlist_groups", lambda f, *a, **k: self._count("jobs", f(*a, **k)))
         self._wrap(h, "match", self._match)
+        self._wrap(h._views.prefilter, "shortlist", self._shortlist)
         self._wrap(s, "places", lambda f, *a, **k: (self._enter("windows"), f(*a, **k))[1])
         self._wrap(s, "best", self._search_best)
         self._module = {name: getattr(estimator_module, name) for name in ("small_part_seeds", "check_twins")}
@@ -91,6 +95,7 @@ class Watch:
         self.batches: list[dict] = []
         self.origin: dict[int, tuple[int, int]] = {}  # id(hypothesis) -> (batch, place in it)
         self.job_rank: dict[int, int] = {}
+        self.chamfer_rank: dict[tuple, int] = {}  # (id(region's maps), view, rotation) -> rank in its shortlist
         self.climbed: set[int] = set()  # ids of the starts climbed
         self.last_starts: list[int] = []  # of the last ``_climbed``: the final choice's
         self.settled: set[int] = set()  # ids of the stop tests' polished poses
@@ -110,17 +115,27 @@ class Watch:
         self.counts[self.stage][key] += len(out)
         return out
 
+    def _shortlist(self, f, maps, phis, count, *a, **k):
+        """The pre-filter's shortlist (in no order), each pair's rank by its full chamfer score noted."""
+        views, which = f(maps, phis, count, *a, **k)
+        prefilter = self.e._hypotheses._views.prefilter
+        turned = np.mod(phis[views, which].astype(np.float32), np.float32(2 * np.pi))[:, None]
+        fine = prefilter._scores_of(maps, views, turned, 1, SERIAL)[:, 0]
+        for rank, j in enumerate(np.argsort(fine, kind="stable")):
+            self.chamfer_rank[(id(maps), int(views[j]), float(phis[views[j], which[j]]))] = rank
+        return views, which
+
     def _match(self, f, jobs, *a, **k):
         out = self._count("matched", f(jobs, *a, **k))
-        first_job, region_rank, rank_of = {}, {}, {}
-        for n, (region, view, _) in enumerate(jobs):
-            first_job.setdefault(id(region), n)
-            region_rank.setdefault(id(region), len(region_rank))
-            rank_of.setdefault((id(region), view), n - first_job[id(region)])
-        seeds = len(region_rank) == len(jobs)  # the seeds' windows: one job each, in the search's order
+        seed_rank = {}
+        for region, _, _ in jobs:
+            seed_rank.setdefault(id(region), len(seed_rank))
+        ranks = {}
+        for region, view, phi in jobs:  # a job's pre-filter rank, else (a seed's window) its seed's
+            ranks.setdefault((id(region), view), self.chamfer_rank.get((id(region.distance_maps), view, phi),
+                                                                      seed_rank[id(region)]))
         for hypothesis in out:
-            self.job_rank[id(hypothesis)] = region_rank[id(hypothesis.region)] if seeds else \
-                rank_of[(id(hypothesis.region), hypothesis.view)]
+            self.job_rank[id(hypothesis)] = ranks[(id(hypothesis.region), hypothesis.view)]
         return out
 
     def _search_best(self, f, coarse, frame, count, *a, **k):
@@ -249,9 +264,13 @@ def summary(rows: list[dict]) -> None:
             picked = [r[who] for r in right if r[who]]
             if picked:
                 by_stage = {s: sum(p["stage"] == s for p in picked) for s in STAGES if any(p["stage"] == s for p in picked)}
+                prefiltered = [p for p in picked if p["stage"] in ("tetrad", "windows")]
+                seeded = [p for p in picked if p["stage"] in ("seeded", "small")]
                 print(f"  right images' {who}: stages {by_stage}; ranks median / max " + ", ".join(
-                    f"{key} {np.median([p[key] for p in picked]):.0f} / {max(p[key] for p in picked)}" for key in RANKS)
-                    + f"; rescued by the alignment {sum(p['rescued'] for p in picked)}")
+                    f"{key} {np.median([p[RANK_KEY.get(key, key)] for p in of_key]):.0f} / "
+                    f"{max(p[RANK_KEY.get(key, key)] for p in of_key)}"
+                    for key, of_key in (("pre-filter", prefiltered), ("seed", seeded), *((k, picked) for k in RANKS[1:]))
+                    if of_key) + f"; rescued by the alignment {sum(p['rescued'] for p in picked)}")
         alone = np.array([a for r in of for a in r["aligned_alone"]], dtype=float).reshape(-1, 4)
         if len(alone):
             line, aligned, end, rescued = alone.T
