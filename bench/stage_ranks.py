@@ -12,17 +12,17 @@ stages' functions wrapped to watch what passes. Per generator stage (``tetrad``,
 hypotheses, the poses verified on the lines (``PoseRefiner.verify``) and aligned on edge
 pixels (``realign``), the starts climbed (``climb_together``).
 
-The chosen pose's hypothesis (the pose handed to the twin check) is traced to the batch it
-was verified in, and its ranks there printed (0 = best): ``job``, its (view, rotation) job's
-rank by the full chamfer score in its region's pre-filter shortlist (for the seeded and small
-stages its seed's rank among the search's seeds that gave a job); ``pos``, its place in the batch handed to the refinement; ``first``,
-``line``, ``end``, by the score of its first pose, of its line end and of its end after
-``realign`` (``rescued``: the aligned end replaced the line end). ``truth``: the same for the
-best-scoring candidate near the truth (bench/hypothesis_recall.py's ``near_truth``).
-Climbs: the starts climbed, how many of them the final choice's climbs use, and how many
-climbs of a stop test's polished pose (fed back as a start) raised its score. ``near
-firsts``: first poses within 5 degrees and 5 % of the diameter of an earlier one of the image.
-``--align-stages`` also aligns every realigned hypothesis again beside the estimator and
+The chosen pose's hypothesis (the pose handed to the twin check) is traced to the batch it was
+verified in, and its ranks there printed (0 = best): ``job``, its (view, rotation) job's rank
+by the full chamfer score in its region's pre-filter shortlist (for the seeded and small stages
+its seed's rank among the search's seeds that gave a job); ``pos``, its place in the batch
+handed to the refinement; ``first``, ``line``, ``end``, by the score of its first pose, of its
+line end and of its end after ``realign`` (``rescued``: the aligned end replaced the line end).
+``truth``: the same for the best-scoring candidate near the truth (bench/hypothesis_recall.py's
+``near_truth``). Climbs: the starts climbed, how many of them the final choice's climbs use,
+and how many climbs of a stop test's polished pose (fed back as a start) raised its score.
+``near firsts``: first poses within 5 degrees and 5 % of the diameter of an earlier one of the
+image. ``--align-stages`` also aligns every realigned hypothesis again beside the estimator and
 scores it after the alignment alone: what the line rounds after it add.
 
 ``--latency``: bench/latency.py's occluded scene (sharp bracket, 2,500 views, 6 images);
@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections import defaultdict
 from pathlib import Path
 
 import cv2
@@ -216,8 +215,9 @@ def describe(r: dict | None) -> str:
     if r is None:
         return "-"
     first, line, end = r["scores"]
-    return (f"{r['stage']:7s} job {r['job']:3d} pos {r['pos']:2d}/{r['of']:2d} first {r['first']:2d} line {r['line']:2d} "
-            f"end {r['end']:2d}{' rescued' if r['rescued'] else ''} (scores {first:.2f} {line:.2f} {end:.2f})")
+    return (f"{r['stage']:7s} job {r['job']:3d} pos {r['pos']:2d}/{r['of']:2d} first {r['first']:2d} "
+            f"line {r['line']:2d} end {r['end']:2d}{' rescued' if r['rescued'] else ''} "
+            f"(scores {first:.2f} {line:.2f} {end:.2f})")
 
 
 def watch_images(label: str, estimator: Estimator, watch: Watch, sc, images: list, model) -> list[dict]:
@@ -233,7 +233,8 @@ def watch_images(label: str, estimator: Estimator, watch: Watch, sc, images: lis
         near = [(b["end"][j], k, j) for k, b in enumerate(watch.batches) for j in range(len(b["end"]))
                 if near_truth(b["R"][j], b["t"][j], entry, estimator.graph)]
         truth = watch.ranks(*max(near)[1:]) if near else None
-        row = {"label": label, "image": entry.image, "found": estimate.found, "right": bool(errors and errors.success_sym),
+        row = {"label": label, "image": entry.image, "found": estimate.found,
+               "right": bool(errors and errors.success_sym),
                "counts": watch.counts, "chosen": chosen, "truth": truth, "climbed": len(watch.climbed),
                "used": len(set(watch.last_starts) & watch.climbed), "reclimbs": tuple(watch.reclimbs),
                "near_firsts": watch.near_firsts(estimator.graph.model_diameter),
@@ -257,19 +258,22 @@ def summary(rows: list[dict]) -> None:
             + f"   ({'/'.join(COUNTS)})")
         print(f"  hypotheses refined {np.mean([r['hypotheses'] for r in of]):.0f}, first poses within 5 deg of an "
               f"earlier {np.mean([r['near_firsts'] for r in of]):.1f}; starts climbed "
-              f"{np.mean([r['climbed'] for r in of]):.1f}, used by the final choice {np.mean([r['used'] for r in of]):.1f}; "
+              f"{np.mean([r['climbed'] for r in of]):.1f}, used by the final choice "
+              f"{np.mean([r['used'] for r in of]):.1f}; "
               f"polished poses climbed again {sum(r['reclimbs'][0] for r in of)}, raised "
               f"{sum(r['reclimbs'][1] for r in of)}")
         for who in ("chosen", "truth"):
             picked = [r[who] for r in right if r[who]]
             if picked:
-                by_stage = {s: sum(p["stage"] == s for p in picked) for s in STAGES if any(p["stage"] == s for p in picked)}
+                by_stage = {s: sum(p["stage"] == s for p in picked) for s in STAGES
+                            if any(p["stage"] == s for p in picked)}
                 prefiltered = [p for p in picked if p["stage"] in ("tetrad", "windows")]
                 seeded = [p for p in picked if p["stage"] in ("seeded", "small")]
                 print(f"  right images' {who}: stages {by_stage}; ranks median / max " + ", ".join(
                     f"{key} {np.median([p[RANK_KEY.get(key, key)] for p in of_key]):.0f} / "
                     f"{max(p[RANK_KEY.get(key, key)] for p in of_key)}"
-                    for key, of_key in (("pre-filter", prefiltered), ("seed", seeded), *((k, picked) for k in RANKS[1:]))
+                    for key, of_key in (("pre-filter", prefiltered), ("seed", seeded),
+                                        *((k, picked) for k in RANKS[1:]))
                     if of_key) + f"; rescued by the alignment {sum(p['rescued'] for p in picked)}")
         alone = np.array([a for r in of for a in r["aligned_alone"]], dtype=float).reshape(-1, 4)
         if len(alone):
@@ -277,7 +281,8 @@ def summary(rows: list[dict]) -> None:
             lift = end[rescued == 1] - aligned[rescued == 1]
             print(f"  realigned {len(alone)}, rescued {int(rescued.sum())}; the line rounds after the alignment add "
                   f"(rescued) median {np.median(lift):.3f}, 90 % {np.percentile(lift, 90):.3f}, max {lift.max():.3f}; "
-                  f"rescued whose alignment alone scored below the line end {int(np.sum((aligned < line) & (rescued == 1)))}")
+                  "rescued whose alignment alone scored below the line end "
+                  f"{int(np.sum((aligned < line) & (rescued == 1)))}")
 
 
 def main(argv=None) -> int:
