@@ -124,6 +124,28 @@ def test_a_disc_with_a_bolt_circle_turns_exactly_by_its_holes():
     assert {60, 120, 180} <= set(turns)
 
 
+def test_near_turns_that_an_exact_turn_makes_one_map_are_kept_once():
+    """A square plate with two holes on one line turns exactly by a half turn about its
+    normal and nearly by a quarter turn (the holes move): the quarter turns either way are
+    one map of the part under the half turn (the screw's rolls), so only one is kept, and no
+    two near symmetries kept differ by an exact one."""
+    parts = [prism(rectangle(0.06, 0.06), 0.01)]
+    parts += [prism(rectangle(0.008, 0.008) + [x, 0.0], 0.01) for x in (-0.02, 0.02)]
+    edges = np.concatenate([e for e, _ in parts])
+    offsets = np.cumsum([0] + [len(v) for _, (v, _) in parts])
+    surface = (np.concatenate([v for _, (v, _) in parts]),
+               np.concatenate([tri + offset for (_, (_, tri)), offset in zip(parts, offsets)]))
+    found = detect(edges, surface)
+    exact_turns = [np.eye(3), *found.rotations[exact(found)]]
+    about_normal = [S for S in found.rotations[~exact(found)] if abs(S[2, 2]) > 0.999]
+    assert any(abs(angle_of(S) - 180) < 3 and abs(S[2, 2]) > 0.999 for S in exact_turns[1:])
+    assert sum(abs(angle_of(S) - 90) < 3 for S in about_normal) == 1
+    near = found.rotations[~exact(found)]
+    for a in range(len(near)):
+        for b in range(a + 1, len(near)):
+            assert min(rotation_angle_deg(E @ near[a], near[b]) for E in exact_turns) > 3.0
+
+
 def test_outlines_do_not_count_and_a_part_without_edges_or_surface_has_none():
     edges, _ = prism(rectangle(0.06, 0.04), 0.025)
     found = detect_symmetries(edges, np.full(len(edges), OUTLINE, np.uint8), 0.08, None)
@@ -383,25 +405,26 @@ def test_a_pose_that_loses_on_evidence_to_one_twin_does_not_win_on_noise_over_an
     from brepose_ros.online.refinement import Candidate
     from brepose_ros.params import PoseParams
 
+    near_box = graph_with(symmetry_shares=np.full(3, 0.7))  # its half turns near, not exact
     R = look_at_rotation(np.array([0.3, -0.2, -1.0]))
     pose = Candidate(0.719, R, np.array([0.0, 0.0, 0.4]), None)
     twin_a = Candidate(0.668, R @ rotation_about(np.array([1.0, 0.0, 0.0]), np.pi), pose.t, None)
     twin_b = Candidate(0.714, R @ rotation_about(np.array([0.0, 1.0, 0.0]), np.pi), pose.t, None)
     evidence = {(0.719, 0.668): (0.425, True), (0.719, 0.714): (-0.005, False), (0.668, 0.714): (0.0, True)}
     monkeypatch.setattr(symmetry, "twin_evidence", lambda graph, a, b, frame, p: evidence[(a.score, b.score)])
-    kept, margin, tied = symmetry.pick_by_evidence(pose, [twin_a, twin_b], graph_with(), None, PoseParams())
+    kept, margin, tied = symmetry.pick_by_evidence(pose, [twin_a, twin_b], near_box, None, PoseParams())
     assert kept is twin_b and margin == 0.0 and tied
     # where A also shows more than B, A is kept, its smallest gain the margin; nothing ties with it
     evidence[(0.668, 0.714)] = (-0.3, True)
-    kept, margin, tied = symmetry.pick_by_evidence(pose, [twin_a, twin_b], graph_with(), None, PoseParams())
+    kept, margin, tied = symmetry.pick_by_evidence(pose, [twin_a, twin_b], near_box, None, PoseParams())
     assert kept is twin_a and margin == pytest.approx(0.3) and not tied
     # where the image tells none apart, a rival displaces the pose only by a clear whole score
     evidence.update({key: (0.0, False) for key in evidence})
-    assert symmetry.pick_by_evidence(pose, [twin_a, twin_b], graph_with(), None, PoseParams())[0] is pose
+    assert symmetry.pick_by_evidence(pose, [twin_a, twin_b], near_box, None, PoseParams())[0] is pose
     higher = Candidate(0.719 + 2.5 * symmetry.MIN_GAIN, twin_b.R, twin_b.t, None)
     evidence[(0.719, higher.score)] = (0.0, False)
     evidence[(0.668, higher.score)] = (0.0, False)
-    assert symmetry.pick_by_evidence(pose, [twin_a, higher], graph_with(), None, PoseParams())[0] is higher
+    assert symmetry.pick_by_evidence(pose, [twin_a, higher], near_box, None, PoseParams())[0] is higher
 
 
 def test_a_twin_below_the_found_floor_still_makes_the_pose_ambiguous(monkeypatch):
@@ -414,15 +437,53 @@ def test_a_twin_below_the_found_floor_still_makes_the_pose_ambiguous(monkeypatch
     from brepose_ros.params import PoseParams
 
     p = PoseParams()
+    near_box = graph_with(symmetry_shares=np.full(3, 0.7))
     R = look_at_rotation(np.array([0.3, -0.2, -1.0]))
     pose = Candidate(0.7, R, np.array([0.0, 0.0, 0.4]), None)
     flip = R @ rotation_about(np.array([1.0, 0.0, 0.0]), np.pi)
     monkeypatch.setattr(symmetry, "twin_evidence", lambda graph, a, b, frame, p: (0.0, False))
     below_found = Candidate((symmetry.RIVAL_FLOOR + p.min_score) / 2, flip, pose.t, None)
     assert symmetry.RIVAL_FLOOR < below_found.score < p.min_score
-    assert symmetry.pick_by_evidence(pose, [below_found], graph_with(), None, p) == (pose, 0.0, False)
+    assert symmetry.pick_by_evidence(pose, [below_found], near_box, None, p) == (pose, 0.0, False)
     below_rivals = Candidate(symmetry.RIVAL_FLOOR - 0.01, flip, pose.t, None)
-    assert symmetry.pick_by_evidence(pose, [below_rivals], graph_with(), None, p) == (pose, 1.0, False)
+    assert symmetry.pick_by_evidence(pose, [below_rivals], near_box, None, p) == (pose, 1.0, False)
+
+def test_twins_that_an_exact_symmetry_makes_one_pose_are_one_rival(monkeypatch):
+    """``pick_by_evidence``: a part turning exactly by a half turn about z and nearly by a
+    quarter turn has the quarter turns either way as one twin (the screw's rolls, the flange's
+    under its sixths). Both refined, the second is the first's copy, not a rival: the image
+    cannot tell them apart, and as a rival it would zero the winner's margin. The pose's own
+    exact twin is no rival either."""
+    from brepose_ros.online import symmetry
+    from brepose_ros.online.refinement import Candidate
+    from brepose_ros.params import PoseParams
+
+    z = np.array([0.0, 0.0, 1.0])
+    turns = np.array([rotation_about(z, angle) for angle in (np.pi, np.pi / 2, -np.pi / 2)])
+    graph = graph_with(symmetry_rotations=turns, symmetry_translations=np.zeros((3, 3)),
+                       symmetry_shares=np.array([0.99, 0.7, 0.7]))
+    R, t = look_at_rotation(np.array([0.3, -0.2, -1.0])), np.array([0.0, 0.0, 0.4])
+    pose = Candidate(0.75, R, t, None)
+    (R_plus, R_minus, R_half), (t_plus, t_minus, t_half) = graph.symmetric_poses(R, t, [1, 2, 0])
+    plus, minus = Candidate(0.70, R_plus, t_plus, None), Candidate(0.70, R_minus, t_minus, None)
+    assert symmetry.same_pose(graph, R_plus, t_plus, R_minus, t_minus)
+    assert symmetry.same_pose(graph, R, t, R_half, t_half)
+    assert not symmetry.same_pose(graph, R, t, R_plus, t_plus)
+    asked = []
+
+    def evidence(graph, a, b, frame, p):
+        asked.append((a.score, b.score))
+        return -0.4, True  # the twin shows clearly less than the pose
+
+    monkeypatch.setattr(symmetry, "twin_evidence", evidence)
+    kept, margin, tied = symmetry.pick_by_evidence(pose, [plus, minus, Candidate(0.74, R_half, t_half, None)],
+                                                   graph, None, PoseParams())
+    assert kept is pose and margin == pytest.approx(0.4) and not tied and len(asked) == 1
+    # where the graph holds the half turn as a near symmetry too, the three are rivals
+    near = graph_with(symmetry_rotations=turns, symmetry_translations=np.zeros((3, 3)),
+                      symmetry_shares=np.full(3, 0.7))
+    assert not symmetry.same_pose(near, R_plus, t_plus, R_minus, t_minus)
+
 
 @pytest.fixture(scope="module")
 def plate_graph(builtin_step):

@@ -40,8 +40,9 @@ from .hidden_lines import OUTLINE
 
 #: bump when a change finds other symmetries in the same graph: cached bench graphs
 #: (bench/graphs.py) are then copied with their symmetries found anew. 2: discrete turns
-#: about near continuous axes, mapped samples matched against all well-seen sections
-DETECTION_VERSION = 2
+#: about near continuous axes, mapped samples matched against all well-seen sections. 3: a near
+#: symmetry that an exact discrete one turns into one kept already is that one
+DETECTION_VERSION = 3
 #: a rotated edge sample matches when an edge sample of like direction lies this close, in
 #: model diameters: twice the compile's chord tolerance, so that polygonised curves match
 #: their rotated selves, and far below any feature a camera resolves at a useful scale
@@ -179,10 +180,15 @@ def detect_symmetries(seg_3d: np.ndarray, kinds: np.ndarray, diameter: float,
     exact_axes = [axis[1] for share, axis in axes if share >= EXACT_SYMMETRY_SHARE]
     kept: list[tuple[float, np.ndarray, np.ndarray]] = []
     for share, S, b in sorted(found, key=lambda f: -f[0]):
-        # the identity (the ICP may fall back onto it), or a symmetry kept already: alike
-        # up to a turn about an exact continuous axis
+        # the identity (the ICP may fall back onto it), or a symmetry kept already: alike up
+        # to a turn about an exact continuous axis, or, for a near one, up to an exact discrete
+        # symmetry (kept first, their shares being higher): the screw's near quarter turns
+        # either way are one map of the part under its exact half turn, and two copies of one
+        # twin leave the run-time twin check no margin between them
         within = SAME_ROTATION_DEG if share >= EXACT_SYMMETRY_SHARE else SAME_NEAR_DEG
-        if any(_same_rotation(S, other, exact_axes, within) for other in [np.eye(3)] + [k[1] for k in kept]):
+        exact = [k[1] for k in kept if k[0] >= EXACT_SYMMETRY_SHARE] if share < EXACT_SYMMETRY_SHARE else []
+        known = [np.eye(3)] + [k[1] for k in kept]
+        if any(_same_rotation(S, E @ other, exact_axes, within) for other in known for E in [np.eye(3)] + exact):
             continue
         if share < EXACT_SYMMETRY_SHARE and sum(k[0] < EXACT_SYMMETRY_SHARE for k in kept) == MAX_NEAR:
             continue

@@ -39,7 +39,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..aspect_graph import AspectGraph
-from ..geometry import rotation_about, rotation_angle_deg, turned_poses
+from ..geometry import rotation_about, turned_poses
 from ..params import PoseParams
 from .frame import Frame
 from .larger import projected_place
@@ -179,7 +179,7 @@ def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray
     so every direction is tried, but once: two half turns across differ by a turn about the
     axis of twice the angle between them, and where that turn is an exact symmetry (a
     flange's bolt circle turned by a sixth) the two twins are one pose of the part
-    (``distinct_turns``)."""
+    (``distinct_poses``)."""
     near_axes = graph.symmetry_axes[~graph.exact_axes]
     R_twins, t_twins, axis_of, keeps_outline = [], [], [], []
     sight = R.T @ (R @ graph.model_center + t)  # camera to the part's centre, in the model frame
@@ -190,12 +190,12 @@ def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray
         across /= np.linalg.norm(across)
         turns = np.array([rotation_about(rotation_about(axis, angle) @ across, np.pi)
                           for angle in np.pi * np.arange(ACROSS_DIRECTIONS) / ACROSS_DIRECTIONS])
-        first = distinct_turns(graph, turns, point)
-        kept = np.unique(first)
         # each turn about the line through ``point``: X -> turn X + (point - turn point)
-        R_axis, t_axis = turned_poses(R, t, turns[kept], point - turns[kept] @ point)
-        R_twins.extend(R_axis)
-        t_twins.extend(t_axis)
+        R_axis, t_axis = turned_poses(R, t, turns, point - turns @ point)
+        first = distinct_poses(graph, R_axis, t_axis)
+        kept = np.unique(first)
+        R_twins.extend(R_axis[kept])
+        t_twins.extend(t_axis[kept])
         axis_of.extend([index] * len(kept))
         keeps_outline.extend(np.isin(kept, first[[0, ACROSS_DIRECTIONS // 2]]).tolist())
     return (np.array(R_twins).reshape(-1, 3, 3), np.array(t_twins).reshape(-1, 3),
@@ -215,24 +215,13 @@ def rolled(twin: Candidate, point: np.ndarray, axis: np.ndarray, graph: AspectGr
     return Candidate(float(scores[k]), R[k], t[k], twin.hypothesis) if scores[k] > twin.score else twin
 
 
-def distinct_turns(graph: AspectGraph, turns: np.ndarray, point: np.ndarray) -> np.ndarray:
-    """(K,) for each of the half ``turns`` (K, 3, 3) about lines through ``point``, the first
-    of them that the part's exact discrete symmetries make the same map of the part (the
-    model turned by one, then by the symmetry, lies where the other turns it:
-    ``refinement.SAME_POSE_DEG`` and ``SAME_POSE_DIAMETERS``)."""
-    exact_R = graph.symmetry_rotations[graph.exact_symmetries]
-    exact_b = graph.symmetry_translations[graph.exact_symmetries]
-    shifts = point - turns @ point  # each turn maps X to turns[k] @ X + shifts[k]
-    first = np.arange(len(turns))
-    for k in range(1, len(turns)):
+def distinct_poses(graph: AspectGraph, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(K,) for each of the poses (K, 3, 3), (K, 3), the first of them that shows the part
+    alike (``same_pose``)."""
+    first = np.arange(len(R))
+    for k in range(1, len(R)):
         for j in range(k):
-            if first[j] != j:
-                continue
-            # the symmetries after turn j, against turn k
-            apart = np.einsum("sij,jk,lk->sil", exact_R, turns[j], turns[k])
-            angles = np.degrees(np.arccos(np.clip((np.trace(apart, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
-            offsets = np.linalg.norm(exact_R @ shifts[j] + exact_b - shifts[k], axis=1)
-            if np.any((angles < SAME_POSE_DEG) & (offsets < SAME_POSE_DIAMETERS * graph.model_diameter)):
+            if first[j] == j and same_pose(graph, R[j], t[j], R[k], t[k]):
                 first[k] = j
                 break
     return first
@@ -269,7 +258,7 @@ def pick_by_evidence(best: Candidate, twins: list[Candidate], graph: AspectGraph
     # back onto the pose (or onto another rival)
     rivals: list[Candidate] = []
     for twin in twins:
-        if twin.score >= RIVAL_FLOOR and not any(same_pose(twin, c, graph.model_diameter) for c in [best] + rivals):
+        if twin.score >= RIVAL_FLOOR and not any(same_pose(graph, twin.R, twin.t, c.R, c.t) for c in [best] + rivals):
             rivals.append(twin)
     if not rivals:
         return Verdict(best, 1.0)  # no twin holds on this image
@@ -310,10 +299,25 @@ def pick_by_evidence(best: Candidate, twins: list[Candidate], graph: AspectGraph
     return Verdict(poses[winner], float(max(margins[winner], 0.0)) if seen[:, winner].all() else 0.0, tied)
 
 
-def same_pose(a: Candidate, b: Candidate, diameter: float) -> bool:
-    """Whether two poses are one (``refinement.SAME_POSE_DEG`` and ``SAME_POSE_DIAMETERS``)."""
-    return (rotation_angle_deg(a.R, b.R) < SAME_POSE_DEG
-            and float(np.linalg.norm(a.t - b.t)) < SAME_POSE_DIAMETERS * diameter)
+def same_pose(graph: AspectGraph, R_a: np.ndarray, t_a: np.ndarray, R_b: np.ndarray, t_b: np.ndarray) -> bool:
+    """Whether two poses show the part alike: pose b lies within ``refinement.SAME_POSE_DEG``
+    and ``SAME_POSE_DIAMETERS`` of pose a or of one of its twins under the part's exact discrete
+    symmetries, or turned about an exact continuous axis (the axis line maps alike). Two
+    stored near twins that an exact symmetry makes one (the flange's quarter turns either way
+    under its sixths) are otherwise two rivals the image can never tell apart, and zero the
+    winner's margin."""
+    R, t = graph.symmetric_poses(R_a, t_a, graph.exact_symmetries)
+    R, t = np.concatenate([R_a[None], R]), np.concatenate([t_a[None], t])
+    near = SAME_POSE_DIAMETERS * graph.model_diameter
+    cos = (np.einsum("kji,ji->k", R, R_b) - 1.0) / 2.0  # trace(R_k^T R_b)
+    if np.any((cos > np.cos(np.radians(SAME_POSE_DEG))) & (np.linalg.norm(t - t_b, axis=1) < near)):
+        return True
+    for point, axis in graph.symmetry_axes[graph.exact_axes]:
+        along = np.einsum("kij,j->ki", R, axis) @ (R_b @ axis) > np.cos(np.radians(SAME_POSE_DEG))
+        at = np.linalg.norm(np.einsum("kij,j->ki", R, point) + t - (R_b @ point + t_b), axis=1) < near
+        if np.any(along & at):
+            return True
+    return False
 
 
 def twin_evidence(graph: AspectGraph, pose: Candidate, twin: Candidate, frame: Frame,
