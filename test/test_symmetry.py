@@ -162,6 +162,7 @@ def graph_with(symmetries=None, **arrays) -> AspectGraph:
     turns = np.array([rotation_about(np.eye(3)[i], np.pi) for i in range(3)])
     fields = dict(symmetry_rotations=turns, symmetry_translations=np.zeros((3, 3)),
                   symmetry_shares=np.ones(3), symmetry_axes=np.zeros((0, 2, 3)), symmetry_axis_shares=np.zeros(0))
+    fields.update(symmetries or {})
     fields.update(arrays)
     return AspectGraph(step_sha256="0" * 64, params={}, model_center=np.zeros(3), model_diameter=0.0763, n_faces=6,
                        view_directions=np.array([[0.0, 0.0, -1.0]]), view_rotations=rotation[None],
@@ -483,6 +484,26 @@ def test_twins_that_an_exact_symmetry_makes_one_pose_are_one_rival(monkeypatch):
     near = graph_with(symmetry_rotations=turns, symmetry_translations=np.zeros((3, 3)),
                       symmetry_shares=np.full(3, 0.7))
     assert not symmetry.same_pose(near, R_plus, t_plus, R_minus, t_minus)
+
+
+def test_poses_turned_about_an_exact_axis_off_the_origin_are_one_pose():
+    """``same_pose`` on a part turning exactly about an axis through (0.01, 0, 0) along z (a
+    plain cylinder): the pose turned about that line by any angle is the same pose; turned
+    about a parallel line through the origin, or tilted, it is not."""
+    from brepose_ros.geometry import turned_poses
+    from brepose_ros.online.symmetry import same_pose
+
+    point, axis = np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    graph = graph_with(no_turns(), symmetry_axes=np.array([[point, axis]]), symmetry_axis_shares=np.array([0.99]))
+    R, t = look_at_rotation(np.array([0.3, -0.2, -1.0])), np.array([0.0, 0.0, 0.4])
+    for angle in (0.3, 2.0, np.pi):
+        turn = rotation_about(axis, angle)[None]
+        (R_line,), (t_line,) = turned_poses(R, t, turn, (point - turn @ point))
+        assert same_pose(graph, R, t, R_line, t_line)
+        (R_origin,), (t_origin,) = turned_poses(R, t, turn, np.zeros((1, 3)))
+        assert not same_pose(graph, R, t, R_origin, t_origin)  # the axis line lands elsewhere
+    tilt = R @ rotation_about(np.array([1.0, 0.0, 0.0]), np.radians(10.0)).T
+    assert not same_pose(graph, R, t, tilt, t)
 
 
 @pytest.fixture(scope="module")
