@@ -506,6 +506,35 @@ def test_poses_turned_about_an_exact_axis_off_the_origin_are_one_pose():
     assert not same_pose(graph, R, t, tilt, t)
 
 
+def test_a_pose_whose_small_rolls_score_alike_is_tied(monkeypatch):
+    """``roll_tied``: about a near continuous axis the pose is scored turned by
+    ``ROLL_TIE_DEG`` about the axis line; a roll scoring within both scores' noise of the pose
+    (``2 * MIN_GAIN``) or above ties it (its confidence then a coin toss), a clear drop at every
+    roll does not; a part with an exact axis or none is never tied so."""
+    from brepose_ros.geometry import rotation_about
+    from brepose_ros.online import symmetry
+    from brepose_ros.online.refinement import Candidate
+
+    point, axis = np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    near = graph_with(no_turns(), symmetry_axes=np.array([[point, axis]]), symmetry_axis_shares=np.array([0.6]))
+    pose = Candidate(0.8, look_at_rotation(np.array([0.3, -0.2, -1.0])), np.array([0.0, 0.0, 0.4]), None)
+    drop = {"by": 0.1}
+
+    def scores(graph, R, t, frame, p):
+        for R_k, t_k, angle in zip(R, t, symmetry.ROLL_TIE_DEG):  # turned about the axis line
+            turn = rotation_about(axis, np.radians(angle))
+            assert np.allclose(R_k, pose.R @ turn.T) and np.allclose(R_k @ point + t_k, pose.R @ point + pose.t)
+        return np.full(len(R), pose.score - drop["by"])
+
+    monkeypatch.setattr(symmetry, "pose_scores", scores)
+    assert not symmetry.roll_tied(pose, near, None, None)
+    drop["by"] = 1.9 * symmetry.MIN_GAIN
+    assert symmetry.roll_tied(pose, near, None, None)
+    exact = graph_with(no_turns(), symmetry_axes=near.symmetry_axes, symmetry_axis_shares=np.array([0.99]))
+    assert not symmetry.roll_tied(pose, exact, None, None)
+    assert not symmetry.roll_tied(pose, graph_with(no_turns()), None, None)
+
+
 @pytest.fixture(scope="module")
 def plate_graph(builtin_step):
     """The notched plate's graph at 15 degrees, and its STEP file."""

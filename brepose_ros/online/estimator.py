@@ -111,8 +111,9 @@ class Estimate:
     symmetry_margin: float | None = None
     #: the margin is below ``pose.twin_margin``: the image cannot tell the pose from a twin
     ambiguous: bool = False
-    #: a twin the image does not tell from the pose scores as well (``symmetry.Verdict``): which
-    #: of the two is reported is a coin toss, and the confidence says so (``confidence.COIN_TOSS``)
+    #: a twin the image does not tell from the pose scores as well, or a small roll about a near
+    #: continuous axis does (``symmetry.Verdict``): which is reported is a coin toss, and the
+    #: confidence says so (``confidence.COIN_TOSS``)
     twin_tie: bool = False
     #: the three parts of the score at the final pose (``scoring.Shares``); None when nothing was scored
     shares: Shares | None = None

@@ -21,6 +21,13 @@ whole scores chooses, and the margin is 0: a guess is no evidence. With several 
 pose that another shows less of stands down, and the best whole score among those left
 wins. Exact symmetries need no check: their twins are the same pose of the part.
 
+About a near continuous axis (a shaft with a flat, a screw) the stored twins are a few turns
+only, and a pose rolled between them is compared with none: where the pose turned by
+``ROLL_TIE_DEG`` either way about the axis scores within the scores' noise of it
+(``roll_tied``), the image does not pin its roll, and the pose is tied as with a twin (the
+shaft's trusted wrong poses were rolled 16-78 degrees, each with a roll scoring within
+0.012 of it or above; docs/results/symmetry.md).
+
 A twin that wins is checked once more against its own twins: the pose entering the check
 may sit a few degrees off (its distinguishing edges then confirm little), while its twins
 were refined onto the image; the winner's twins bring the pose's side back as well fitted.
@@ -75,6 +82,10 @@ ACROSS_CLIMBED = 2
 #: climbed twins of the flange's clean 13 stood 6-8 degrees off the truth's roll (its bolt
 #: holes), the shaft's clutter 4 3-4 degrees
 ROLL_STEPS_DEG = (-8.0, -4.0, 4.0, 8.0)
+#: turns about a near continuous axis, degrees, at which the final pose is scored for a roll
+#: the image does not tell from it (``roll_tied``): within the stored twins' spacing (60-90
+#: degrees on the shaft), beyond the refinement's reach of a few degrees
+ROLL_TIE_DEG = (-30.0, -20.0, -10.0, 10.0, 20.0, 30.0)
 
 #: a twin scoring this or more is a rival of the pose, whatever ``pose.min_score``: the
 #: confidence's twin features (``twin_margin``, ``ambiguous``) were recorded with rivals from
@@ -99,7 +110,8 @@ class Verdict(NamedTuple):
     over its strongest rival (``pick_by_evidence``), and whether it is ``tied``: a rival that
     the edges telling the two apart do not show less of scores within both scores' noise of
     the pose (``2 * MIN_GAIN``), so the image cannot choose between them at all (the notched
-    plate and its half turn with the notch unseen, 0.910 against 0.902)."""
+    plate and its half turn with the notch unseen, 0.910 against 0.902), or, from the twin
+    check, the pose rolled a little about a near continuous axis does (``roll_tied``)."""
 
     pose: Candidate
     margin: float
@@ -161,7 +173,24 @@ def check_twins(best: Candidate, graph: AspectGraph, refiner: PoseRefiner, frame
     verdict = pick_by_evidence(best, twins + (compared or []), graph, frame, p)
     if compared is None and verdict.pose is not best:
         return check_twins(verdict.pose, graph, refiner, frame, p, pool, compared=[best] + twins)
-    return verdict
+    return verdict._replace(tied=verdict.tied or roll_tied(verdict.pose, graph, frame, p))
+
+
+def roll_tied(pose: Candidate, graph: AspectGraph, frame: Frame, p: PoseParams) -> bool:
+    """Whether the pose turned by one of ``ROLL_TIE_DEG`` about a near (not exact) continuous
+    axis of the part scores within both scores' noise of it (``2 * MIN_GAIN``), or more: the
+    image does not pin the pose's roll (module doc)."""
+    for point, axis in graph.symmetry_axes[~graph.exact_axes]:
+        R, t = _rolls(pose, point, axis, ROLL_TIE_DEG)
+        if np.any(pose_scores(graph, R, t, frame, p) >= pose.score - 2 * MIN_GAIN):
+            return True
+    return False
+
+
+def _rolls(pose: Candidate, point: np.ndarray, axis: np.ndarray, angles_deg) -> tuple[np.ndarray, np.ndarray]:
+    """The pose turned by each of ``angles_deg`` about the part's axis through ``point``."""
+    turns = np.array([rotation_about(axis, np.radians(angle)) for angle in angles_deg])
+    return turned_poses(pose.R, pose.t, turns, point - turns @ point)  # about the line through ``point``
 
 
 def end_over_end(graph: AspectGraph, R: np.ndarray, t: np.ndarray
@@ -208,8 +237,7 @@ def rolled(twin: Candidate, point: np.ndarray, axis: np.ndarray, graph: AspectGr
     the one of ``ROLL_STEPS_DEG`` that scores best, if it scores more than the twin: what
     tells the roll of a nearly rotational part is its small odd features (a flange's bolt
     holes), which the line rounds hardly move, while its outline stays put at any roll."""
-    turns = np.array([rotation_about(axis, np.radians(angle)) for angle in ROLL_STEPS_DEG])
-    R, t = turned_poses(twin.R, twin.t, turns, point - turns @ point)  # about the line through ``point``
+    R, t = _rolls(twin, point, axis, ROLL_STEPS_DEG)
     scores = pose_scores(graph, R, t, frame, p)
     k = int(np.argmax(scores))
     return Candidate(float(scores[k]), R[k], t[k], twin.hypothesis) if scores[k] > twin.score else twin
