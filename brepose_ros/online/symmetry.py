@@ -25,8 +25,8 @@ About a near continuous axis (a shaft with a flat, a screw) the stored twins are
 only, and a pose rolled between them is compared with none: where the pose turned by
 ``ROLL_TIE_DEG`` either way about the axis scores within the scores' noise of it
 (``roll_tied``), the image does not pin its roll, and the pose is tied as with a twin (the
-shaft's trusted wrong poses were rolled 16-78 degrees, each with a roll scoring within
-0.012 of it or above; docs/results/symmetry.md).
+shaft's trusted wrong poses were rolled 16-78 degrees or end over end, four of five with a
+roll scoring within 0.012 of them or above; docs/results/confidence.md).
 
 A twin that wins is checked once more against its own twins: the pose entering the check
 may sit a few degrees off (its distinguishing edges then confirm little), while its twins
