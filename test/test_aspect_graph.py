@@ -151,19 +151,13 @@ def test_hole_behind_a_face_does_not_appear(blind_hole_step, method):
 def occt_2d_edges(shape, rotation):
     """OCCT's own 2D hidden-line result, densely sampled, in our view coordinates."""
     from OCP.BRepAdaptor import BRepAdaptor_Curve
-    from OCP.HLRBRep import HLRBRep_Algo, HLRBRep_HLRToShape
     from OCP.TopAbs import TopAbs_EDGE
     from OCP.TopExp import TopExp_Explorer
     from OCP.TopoDS import TopoDS
 
-    from brepose_ros.offline.hidden_lines import _projector
+    from brepose_ros.offline.hidden_lines import exact_hidden_lines
 
-    algo = HLRBRep_Algo()
-    algo.Add(shape)
-    algo.Projector(_projector(rotation))
-    algo.Update()
-    algo.Hide()
-    result = HLRBRep_HLRToShape(algo)
+    result = exact_hidden_lines(shape, rotation)
     points = []
     for compound in (result.VCompound(), result.OutLineVCompound()):
         explorer = TopExp_Explorer(compound, TopAbs_EDGE)

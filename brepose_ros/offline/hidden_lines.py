@@ -161,6 +161,19 @@ def _edges(compound):
         explorer.Next()
 
 
+def exact_hidden_lines(shape, rotation):
+    """OCCT's exact hidden-line removal of ``shape`` seen along ``rotation``'s view axis
+    (``_projector``): its ``HLRBRep_HLRToShape``, whose compounds hold the visible edges by kind."""
+    from OCP.HLRBRep import HLRBRep_Algo, HLRBRep_HLRToShape
+
+    algo = HLRBRep_Algo()
+    algo.Add(shape)
+    algo.Projector(_projector(rotation))
+    algo.Update()
+    algo.Hide()
+    return HLRBRep_HLRToShape(algo)
+
+
 def _exact_polylines(shape, rotation, include_smooth, deflection):
     """Visible 3D polylines with their kind from the exact HLR.
 
@@ -168,14 +181,9 @@ def _exact_polylines(shape, rotation, include_smooth, deflection):
     face seen edge-on), which the sharp compound already has: identical point lists, so
     they are dropped by value.
     """
-    from OCP.HLRBRep import HLRBRep_Algo, HLRBRep_HLRToShape, HLRBRep_TypeOfResultingEdge as T
+    from OCP.HLRBRep import HLRBRep_TypeOfResultingEdge as T
 
-    algo = HLRBRep_Algo()
-    algo.Add(shape)
-    algo.Projector(_projector(rotation))
-    algo.Update()
-    algo.Hide()
-    result = HLRBRep_HLRToShape(algo)
+    result = exact_hidden_lines(shape, rotation)
     types = [(SHARP, T.HLRBRep_Sharp), (OUTLINE, T.HLRBRep_OutLine)]
     if include_smooth:
         types.append((SMOOTH, T.HLRBRep_Rg1Line))
