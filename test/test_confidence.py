@@ -253,8 +253,8 @@ def test_a_refused_pose_says_which_rule_refused_it():
                                              "pose.max_distance 0.6")
     weak = estimate(0.3, confidence=0.01, distance=0.5)
     assert not is_found(weak, ranged)
-    assert not_found_reason(weak, ranged) == ("score 0.30, pose.min_score 0.55; confidence 0.01, "
-                                              "pose.min_confidence 0.08")
+    assert not_found_reason(weak, ranged) == (f"score 0.30, pose.min_score {ranged.min_score:g}; confidence 0.01, "
+                                              f"pose.min_confidence {ranged.min_confidence:g}")
 
 
 def test_the_trusted_rule_reaches_its_precision_on_the_estimates_it_is_chosen_among():
