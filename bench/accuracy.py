@@ -19,6 +19,10 @@ data/bench/ (git-ignored); a scene of more images serves a smaller --n (image i 
 rewritten after every row, for ``bench/plot_accuracy.py``; ``--report`` prints the tables of
 one or more such files, pooling the images of a part and condition (runs split by part, or
 extended with ``--start``). Metrics follow ../shared/CONVENTIONS.md.
+
+Images 0-15 are where the estimator's choices were measured for twenty sessions; images
+``FRESH_START`` on (``--start 64``) are held out: judge a change on both ranges, and quote
+the fresh one as what a camera gets (docs/results/accuracy.md, 2026-12-04).
 """
 from __future__ import annotations
 
@@ -76,6 +80,8 @@ DISTRACTORS = ("sample_bracket", "08_soarm100__STS3215_03a.step", "12_soarm100__
 #: Bump when the scene generator changes, so cached scenes are regrown.
 SCENES_VERSION = 1
 SPAN = (0.15, 0.70)
+#: the first held-out image: no choice of the estimator was measured on images from here on
+FRESH_START = 64
 CLUTTER = 4
 OCCLUSIONS = (10, 20, 30, 40, 50)
 CONDITIONS = {"clean": dict(), "clutter": dict(offcenter=True, clutter=CLUTTER)}
@@ -296,7 +302,8 @@ def main(argv=None) -> int:
                         help=f"the part's projected size, share of the image's smaller side (default {SPAN[0]:g} "
                              f"{SPAN[1]:g}); other spans get scene folders of their own")
     parser.add_argument("--start", type=int, default=0,
-                        help="first image index: --start 12 --n 12 adds images 12-23 to a run of --n 12")
+                        help="first image index: --start 12 --n 12 adds images 12-23 to a run of --n 12; "
+                             f"--start {FRESH_START} the held-out images (module doc)")
     parser.add_argument("--out", type=Path, help="results JSON (default data/bench/results/accuracy_LABEL.json)")
     parser.add_argument("--report", type=Path, nargs="+", metavar="RESULTS",
                         help="print the tables of saved results files instead of running")
