@@ -341,8 +341,8 @@ def same_pose(graph: AspectGraph, R_a: np.ndarray, t_a: np.ndarray, R_b: np.ndar
     if np.any((cos > np.cos(np.radians(SAME_POSE_DEG))) & (np.linalg.norm(t - t_b, axis=1) < near)):
         return True
     for point, axis in graph.symmetry_axes[graph.exact_axes]:
-        along = np.einsum("kij,j->ki", R, axis) @ (R_b @ axis) > np.cos(np.radians(SAME_POSE_DEG))
-        at = np.linalg.norm(np.einsum("kij,j->ki", R, point) + t - (R_b @ point + t_b), axis=1) < near
+        along = (R @ axis) @ (R_b @ axis) > np.cos(np.radians(SAME_POSE_DEG))
+        at = np.linalg.norm(R @ point + t - (R_b @ point + t_b), axis=1) < near
         if np.any(along & at):
             return True
     return False
