@@ -9,7 +9,14 @@ image before and after says which poses a change righted and which it lost:
 
 prints, per set (tuning / leave-out) and condition, on the images both runs hold: right,
 right up to the part's exact symmetries, found, and found but wrong (even up to symmetry),
-before -> after; then each image whose rightness changed.
+before -> after; then each image whose rightness changed, and a sign test on their counts.
+
+The estimator is sensitive: a nudge that should change nothing (Canny's threshold 5.0 ->
+5.02 noise units, session 23) rights 9 and loses 20 of images 0-15, rights 25 and loses 19
+of images 64-79. So read the sign test's p (two-sided, exact binomial: how often as
+uneven a split of the changed images would come of a change that helps and harms alike),
+judge on images nothing was chosen on (bench/accuracy.py's ``FRESH_START``), and pool ranges
+before believing a difference of a few images.
 """
 from __future__ import annotations
 
@@ -20,6 +27,8 @@ from collections import defaultdict
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from scipy.stats import binomtest  # noqa: E402
 
 from bench.accuracy import TUNING  # noqa: E402
 
@@ -66,10 +75,16 @@ def main(argv=None) -> int:
     for (group, condition), row in sorted(totals.items()):
         cells = " | ".join(f"{row[1 + 2 * i]} -> {row[2 + 2 * i]}" for i in range(4))
         print(f"| {group} | {condition} | {row[0]} | {cells} |")
+    every = [sum(row[i] for row in totals.values()) for i in range(9)]
+    print(f"| all | | {every[0]} | " + " | ".join(f"{every[1 + 2 * i]} -> {every[2 + 2 * i]}" for i in range(4)) + " |")
     changed = [(key, counts(after[key])[0]) for key in shared if counts(before[key])[0] != counts(after[key])[0]]
     for label, now_right in (("righted", True), ("lost", False)):
         names = [f"{part} {condition} {Path(image).stem}" for (part, condition, image), r in changed if r == now_right]
         print(f"\n{label} ({len(names)}): " + (", ".join(names) if names else "none"))
+    righted = sum(r for _, r in changed)
+    if changed:
+        p_value = binomtest(righted, len(changed), 0.5).pvalue
+        print(f"\nsign test: {righted} righted, {len(changed) - righted} lost, two-sided p = {p_value:.3f}")
     return 0
 
 
