@@ -20,9 +20,12 @@ rewritten after every row, for ``bench/plot_accuracy.py``; ``--report`` prints t
 one or more such files, pooling the images of a part and condition (runs split by part, or
 extended with ``--start``). Metrics follow ../shared/CONVENTIONS.md.
 
-Images 0-15 are where the estimator's choices were measured for twenty sessions; images
-``FRESH_START`` on (``--start 64``) were held out: judge a change on both ranges, and quote
-the fresh one beside the other (docs/results/accuracy.md, 2026-12-04).
+Images 0-15 are where the estimator's choices were measured for twenty sessions, and main
+sits on a lucky draw there (any change, even a nudge of one threshold, loses about ten of
+their 480); images ``FRESH_START`` on were held out. Judge a change on the fresh images
+64-95 (``--start 64`` and ``--start 80``, 960 images) with bench/compare_runs.py's sign
+test, against the tens of images any change moves, not on images 0-15
+(docs/results/accuracy.md, sessions 22 and 23).
 """
 from __future__ import annotations
 
