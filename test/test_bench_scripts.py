@@ -37,3 +37,22 @@ def test_the_look_split_bins_sizes_in_order_and_pools_by_condition():
     table = split(records)
     assert table["background"]["grid"]["clean"] == [True, False]
     assert table["motion blur"]["none"]["clutter"] == [True]
+
+
+def test_compare_runs_counts_righted_and_lost_images_and_tests_their_split(tmp_path, capsys):
+    import json
+
+    from bench.compare_runs import main
+
+    def run(path, rights):
+        images = [{"image": f"{i:06d}.png", "found": True, "success": r, "success_sym": r}
+                  for i, r in enumerate(rights)]
+        path.write_text(json.dumps({"rows": [{"part": "shaft", "condition": "clean", "images": images}]}))
+        return path
+
+    before = run(tmp_path / "before.json", [True] * 2 + [False] * 10)
+    after = run(tmp_path / "after.json", [False] * 2 + [True] * 10)
+    assert main(["--before", str(before), "--after", str(after)]) == 0
+    out = capsys.readouterr().out
+    assert "| all | | 12 | 2 -> 10 |" in out
+    assert "sign test: 10 righted, 2 lost, two-sided p = 0.039" in out
