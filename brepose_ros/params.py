@@ -219,8 +219,9 @@ class PoseParams(Ranged):
     larger_check: bool = doc(
         "when the final pose scores below search.enough_score, search again about its place for larger poses "
         "(``online/larger.py``: a shrunken, turned copy of the part lying on its own edges) and keep one that "
-        "scores more. Off: on main 75528d7 it righted 2 of 160 clean and clutter images of the ten bench parts "
-        "(both on tuning parts, none on leave-out, none lost) at 1.35x the median time (docs/results/depth.md)", False)
+        "scores more. On 1,440 bench images nothing was chosen on it rights 13 and loses 2 (right 519 -> 530, found "
+        "but wrong 277 -> 283; LM-O unchanged), at about 1.3x the time of an image that scores below "
+        "search.enough_score; false where that time matters more (docs/results/depth.md)", True)
     twin_margin: float = doc(
         "a pose whose evidence over its best twin (difference of the shares of their distinguishing edges the "
         "image confirms) is below this is reported ambiguous", 0.2, 0.0, 1.0)

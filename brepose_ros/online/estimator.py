@@ -27,7 +27,7 @@ Each stage lives in its own module; this one only wires them:
    the most of its colour alone (``colour_regions.colour_places``), a pose found there kept
    if it scores more on the whole regions' edges
 5. ``larger``: a pose scoring below ``search.enough_score`` against larger poses about its
-   place, searched again (``pose.larger_check``, off by default)
+   place, searched again (``pose.larger_check``)
 6. ``symmetry``: the pose against its twins under the part's near symmetries, on the
    edges that tell them apart; ambiguous when the image cannot decide
 7. ``scoring``: the error ratio and the score's shares at the pose; ``confidence``: the
