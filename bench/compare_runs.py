@@ -51,6 +51,12 @@ def counts(record: dict) -> tuple[int, int, int, int]:
     return right, right_sym, found, found and not right_sym
 
 
+def transitions(row: list[int]) -> str:
+    """The four counts of a totals row (images, then each count before and after) as table
+    cells ``before -> after``."""
+    return " | ".join(f"{row[1 + 2 * i]} -> {row[2 + 2 * i]}" for i in range(4))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--before", type=Path, nargs="+", required=True, help="result files of the first run")
@@ -73,10 +79,9 @@ def main(argv=None) -> int:
     print("| set | condition | images | right | up to symmetry | found | found but wrong |")
     print("|---|---|---|---|---|---|---|")
     for (group, condition), row in sorted(totals.items()):
-        cells = " | ".join(f"{row[1 + 2 * i]} -> {row[2 + 2 * i]}" for i in range(4))
-        print(f"| {group} | {condition} | {row[0]} | {cells} |")
+        print(f"| {group} | {condition} | {row[0]} | {transitions(row)} |")
     every = [sum(row[i] for row in totals.values()) for i in range(9)]
-    print(f"| all | | {every[0]} | " + " | ".join(f"{every[1 + 2 * i]} -> {every[2 + 2 * i]}" for i in range(4)) + " |")
+    print(f"| all | | {every[0]} | {transitions(every)} |")
     changed = [(key, counts(after[key])[0]) for key in shared if counts(before[key])[0] != counts(after[key])[0]]
     for label, now_right in (("righted", True), ("lost", False)):
         names = [f"{part} {condition} {Path(image).stem}" for (part, condition, image), r in changed if r == now_right]
