@@ -1,6 +1,6 @@
 """What the wrong reported poses are, and whether a generic flip check would right them.
 
-    python bench/flips.py [--n 8] [--parts sharp_bracket ...] [--conditions clean clutter] [--label NAME]
+    python bench/flips.py [--n 8] [--start 0] [--parts sharp_bracket ...] [--conditions clean clutter] [--label NAME]
 
 For each part, condition and image of bench/accuracy.py's cached scenes (varied look, seed
 100, 5-degree graphs), the estimator with default parameters. Every reported pose (score >=
@@ -121,7 +121,7 @@ def flip_check(estimator: Estimator, frame: Frame, best: Candidate, axes: np.nda
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_scene_arguments(parser, n=8, parts=list(PARTS), conditions=["clean", "clutter"])
+    add_scene_arguments(parser, n=8, parts=list(PARTS), conditions=["clean", "clutter"], start=True)
     parser.add_argument("--label", default="default")
     args = parser.parse_args(argv)
     cache = REPO / "data" / "bench"
@@ -135,8 +135,8 @@ def main(argv=None) -> int:
         for condition in args.conditions:
             row = {"part": name, "condition": condition, "reported": 0, "right": 0, "wrong": 0, "half_turn": 0,
                    "other_depth": 0, "reachable": 0, "made": 0, "broken": 0, "ms": []}
-            images = scene(cache, name, step, condition, args.n, distractors)
-            for i, entry in enumerate(images.entries):
+            images = scene(cache, name, step, condition, range(args.start, args.start + args.n), distractors)
+            for i, entry in enumerate(images.entries, start=args.start):
                 image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
                 est = estimator.estimate(image, images.camera)
                 if not est.found:
