@@ -219,9 +219,11 @@ class PoseParams(Ranged):
     larger_check: bool = doc(
         "when the final pose scores below search.enough_score, search again about its place for larger poses "
         "(``online/larger.py``: a shrunken, turned copy of the part lying on its own edges) and keep one that "
-        "scores more. On 1,440 bench images nothing was chosen on it rights 13 and loses 2 (right 519 -> 530, found "
-        "but wrong 277 -> 283; LM-O unchanged), at about 1.3x the time of an image that scores below "
-        "search.enough_score; false where that time matters more (docs/results/depth.md)", True)
+        "scores more, or nearly as much with more evidence against chance. On 1,440 fresh bench images the check "
+        "by the score alone righted 13 and lost 2 (right 519 -> 530), the evidence another 16 and 1 (530 -> 545, "
+        "found but wrong 283 -> 265; its rule chosen on images 64-79, 12 righted and 2 lost on 80-127); LM-O "
+        "unchanged; about 1.3x the time of an image that scores below search.enough_score; false where that "
+        "time matters more (docs/results/depth.md)", True)
     twin_margin: float = doc(
         "a pose whose evidence over its best twin (difference of the shares of their distinguishing edges the "
         "image confirms) is below this is reported ambiguous", 0.2, 0.0, 1.0)

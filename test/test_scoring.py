@@ -54,13 +54,9 @@ def turned(segments, degrees):
     return (segments - center) @ np.array([[c, s], [-s, c]]) + center
 
 
-def test_the_truth_outranks_near_poses_with_30_percent_hidden_behind_a_textured_occluder():
-    """A bright L plate on a mid-grey background, its left 30 % (by area) under an occluder
-    of random light and dark stripes. The true pose is confirmed beyond chance on 70 % of
-    its length and the occluder's edges, where its own edges are missing, do not count
-    against it: it scores well above 0.5 and above the same pose shifted by 8 px or turned
-    by 8 degrees, which the occluder's stripes confirm here and there."""
-    rng = np.random.default_rng(7)
+def occluded_plate(rng):
+    """A bright L plate on a mid-grey background (``l_plate`` at 200 px), its left 30 % (by
+    area) under an occluder of random light and dark stripes: the image and the plate's model."""
     gray = np.full((300, 400), 90, np.uint8)
     corners, model = l_plate((200, 150), 200)
     cv2.fillPoly(gray, [np.round(corners[0]).astype(np.int32)], 200)
@@ -72,11 +68,40 @@ def test_the_truth_outranks_near_poses_with_30_percent_hidden_behind_a_textured_
         gray[20:280, x:x + 6] = rng.integers(20, 250)
     for y in range(20, 280, 9):
         gray[y:y + 2, 60:hidden_columns] = rng.integers(20, 250)
+    return gray, model
+
+
+def test_the_truth_outranks_near_poses_with_30_percent_hidden_behind_a_textured_occluder():
+    """The occluded plate (``occluded_plate``). The true pose is confirmed beyond chance on 70 % of
+    its length and the occluder's edges, where its own edges are missing, do not count
+    against it: it scores well above 0.5 and above the same pose shifted by 8 px or turned
+    by 8 degrees, which the occluder's stripes confirm here and there."""
+    gray, model = occluded_plate(np.random.default_rng(7))
     evidence = scoring.EdgeEvidence(*edge_stage(gray.astype(np.float32)))
     truth = evidence.shares(model, 2.0, MARGIN).score
     assert truth > 0.55
     for wrong in (model + [8.0, 0.0], model + [0.0, 8.0], turned(model, 8.0), turned(model, -8.0)):
         assert evidence.shares(wrong, 2.0, MARGIN).score < truth - 0.25
+
+
+def test_a_shrunken_copy_on_the_parts_corner_carries_less_evidence_than_the_part_hidden_in_part():
+    """The occluded plate, and the plate's model shrunk to 0.6 about its top right corner:
+    two of its edges lie on the plate's own, the rest on its bare face. The evidence against
+    chance (``surprises_of``, what the larger-pose check compares besides the score) grows
+    with the confirmed length: the whole plate, 30 % hidden, carries well over twice the
+    shrunken copy's (634 against 140 nats measured), and the plate's edges right of the occluder
+    alone carry about as much (682): the hidden length is not what the evidence rests on."""
+    gray, model = occluded_plate(np.random.default_rng(7))
+    evidence = scoring.EdgeEvidence(*edge_stage(gray.astype(np.float32)))
+    corner = model[1, 0]  # the outline's top right corner
+    shrunken = corner + 0.6 * (model - corner)
+
+    def surprise(segments):
+        return float(evidence.surprises_of(evidence.counts(segments, np.array([0, len(segments)]), 2.0, MARGIN))[0])
+
+    visible = model[model[:, :, 0].min(axis=1) > 150]  # edges right of the occluder
+    assert surprise(model) > 2 * surprise(shrunken) > 0
+    assert surprise(visible) > 0.8 * surprise(model)
 
 
 def test_cells_where_the_pose_lies_beside_the_parts_edges_count_against_it_and_hidden_ones_do_not():
@@ -639,3 +664,8 @@ def test_scores_of_a_batch_are_each_poses_shares_score_to_the_bit():
     scores = evidence.scores_of(counts)
     assert np.count_nonzero(scores) > n // 2
     assert scores.tobytes() == np.array([evidence.shares_of(c).score for c in counts]).tobytes()
+    # the evidence in nats is the significance's exponent
+    significance = np.array([evidence.shares_of(c).significance for c in counts])
+    surprises = evidence.surprises_of(counts)
+    assert np.all(surprises[counts[:, 0] == 0] == 0) and np.all(surprises >= 0)
+    assert np.allclose(1.0 - np.exp(-surprises / evidence.SIGNIFICANT_PIXELS), significance, rtol=0, atol=1e-12)

@@ -9,7 +9,11 @@ part sizes 1.25-3.8x its projected size (up to the search's largest), its best t
 matched by Kuhn-Munkres as seeds (``TetradHypotheses.at_seeds``, as the estimator's
 ``seeded`` generator does), the best of those refined also moved along their line of sight
 (``depth_sweep``); those nearer than the chosen pose are climbed and polished, and the best
-replaces it if it is still nearer and scores more.
+replaces it if it is still nearer and either scores more, or scores nearly as much and
+carries more evidence against chance (``scoring.pose_surprises``). The score is a share, so
+a shrunken copy that lies on the part's own edges can outscore the part's truth when an
+occluder hides some of it; the truth then still explains more of the image in absolute
+terms (docs/results/depth.md, session 24).
 """
 from __future__ import annotations
 
@@ -20,6 +24,7 @@ from ..params import EstimatorParams
 from .frame import Frame
 from .hypotheses import TetradHypotheses, best_covered
 from .refinement import Candidate, PoseRefiner, hypothesis_rounds
+from .scoring import pose_surprises
 from .search import TemplateSearch
 from .workers import SERIAL, WorkerPool
 
@@ -35,6 +40,10 @@ SWEEP_STARTS = 16
 DEPTH_FACTORS = (0.75, 0.87, 1.15)
 #: a rival counts as larger when its centre is at most this share of the pose's distance
 MAX_DEPTH_RATIO = 0.85
+#: a larger rival scoring at least this share of the pose's score replaces it if it carries
+#: more evidence; one scoring much less is another explanation, not a fuller one (a pose four
+#: times as near covers much of the image with a low share and gathers evidence by its size)
+EVIDENCE_SCORE_SHARE = 0.8
 
 
 def depth_sweep(starts: list[Candidate], graph: AspectGraph, frame: Frame, p: EstimatorParams, refiner: PoseRefiner,
@@ -92,5 +101,11 @@ def larger_pose(best: Candidate, graph: AspectGraph, frame: Frame, p: EstimatorP
         return best
     rival = refiner.best(larger, frame, p.pose, pool)
     # the climb and polish may carry a larger start back to the pose's own depth (a twin of it)
-    nearer = centre_distance(graph, rival) < MAX_DEPTH_RATIO * distance
-    return rival if nearer and rival.score > best.score else best
+    if centre_distance(graph, rival) >= MAX_DEPTH_RATIO * distance:
+        return best
+    if rival.score > best.score:
+        return rival
+    if rival.score < EVIDENCE_SCORE_SHARE * best.score:
+        return best
+    surprises = pose_surprises(graph, np.array([rival.R, best.R]), np.array([rival.t, best.t]), frame, p.pose)
+    return rival if surprises[0] > surprises[1] else best

@@ -57,14 +57,28 @@ def pose_scores(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame"
     pixels inside them where the face darkens at grazing light: they are looked up within
     ``pose.outline_pixels``, the sharp edges within ``pose.inlier_pixels``.
     """
+    return frame.evidence.scores_of(pose_counts(graph, R, t, frame, p))
+
+
+def pose_surprises(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame", p: PoseParams) -> np.ndarray:
+    """For B poses (B, 3, 3), (B, 3): the evidence against chance their confirmations carry,
+    nats (``EdgeEvidence.surprises_of``), 0 where ``pose_scores`` is 0 for the pose's place
+    or size. Unlike the score's shares it grows with the confirmed length: a pose that
+    projects smaller and sits on the part's own edges can score a larger share than the
+    part's truth hidden in part, but it explains less of the image."""
+    return frame.evidence.surprises_of(pose_counts(graph, R, t, frame, p))
+
+
+def pose_counts(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: "Frame", p: PoseParams) -> np.ndarray:
+    """(B, 8) ``EdgeEvidence.counts`` of B poses' visible model edges, projected together and
+    counted in one compiled call; zeros for a pose behind the camera."""
     ahead = np.nonzero(np.asarray(t)[:, 2] > 0)[0]
     rows, pose_of_row = visible_rows(graph, R[ahead], t[ahead])
     model_px = project_each(frame.camera, graph.seg_3d[rows], R[ahead][pose_of_row], t[ahead][pose_of_row])
     spans = np.zeros(len(R) + 1, np.int64)
     spans[ahead + 1] = np.bincount(pose_of_row, minlength=len(ahead))
-    counts = frame.evidence.counts(model_px, np.cumsum(spans), p.inlier_pixels, p.min_margin_pixels,
-                                   p.min_size_pixels, graph.seg_kind[rows] != SHARP, p.outline_pixels, p.seen_pixels)
-    return frame.evidence.scores_of(counts)
+    return frame.evidence.counts(model_px, np.cumsum(spans), p.inlier_pixels, p.min_margin_pixels,
+                                 p.min_size_pixels, graph.seg_kind[rows] != SHARP, p.outline_pixels, p.seen_pixels)
 
 
 def scored_tolerances(graph: AspectGraph, p: PoseParams) -> tuple[float, ...]:
@@ -586,12 +600,20 @@ class EdgeEvidence:
         ~800 an occluded image, whose Python one pose at a time held the GIL for 4-5 ms)."""
         return combined_score(*self._shares(np.asarray(counts)))
 
+    def surprises_of(self, counts: np.ndarray) -> np.ndarray:
+        """(B,) the confirmations' evidence against chance of B poses' sums (B, 8), nats: the
+        model length times KL(confirmed share || chance), the exponent of the Chernoff bound
+        on chance confirming as much (*significance*, class doc); 0 without model length."""
+        length, confirmed, by_chance = np.asarray(counts, np.float64).T[:3]
+        with np.errstate(divide="ignore", invalid="ignore"):  # the rows without length, zeroed below
+            return np.where(length > 0, length * kl_divergence(confirmed / length, by_chance / length), 0.0)
+
     def _shares(self, counts: np.ndarray) -> np.ndarray:
         """(4, B): the ``Shares`` fields of B poses' sums (B, 8), all 0 for a pose without
         model length."""
         length, confirmed, by_chance, seen_edges, explained, probes, ran_on, ran_by_chance = counts.T
+        surprise = self.surprises_of(counts)
         with np.errstate(divide="ignore", invalid="ignore"):  # the rows without length, zeroed below
-            surprise = length * kl_divergence(confirmed / length, by_chance / length)
             shares = np.array([beyond_chance(confirmed, by_chance, length),
                                np.where(seen_edges > 0, explained / seen_edges, 0.0),
                                1.0 - np.exp(-surprise / self.SIGNIFICANT_PIXELS),
