@@ -75,9 +75,17 @@ def projected_place(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: Fra
 
 def larger_pose(best: Candidate, graph: AspectGraph, frame: Frame, p: EstimatorParams, search: TemplateSearch,
                 hypotheses: TetradHypotheses, refiner: PoseRefiner, pool: WorkerPool = SERIAL) -> Candidate:
-    """``best``, or a larger pose about its place that scores more (module doc)."""
+    """``best``, or a larger pose about its place that the image prefers (module doc)."""
+    rival = larger_rival(best, graph, frame, p, search, hypotheses, refiner, pool)
+    return rival if rival is not None and prefers_rival(best, rival, graph, frame, p) else best
+
+
+def larger_rival(best: Candidate, graph: AspectGraph, frame: Frame, p: EstimatorParams, search: TemplateSearch,
+                 hypotheses: TetradHypotheses, refiner: PoseRefiner, pool: WorkerPool = SERIAL) -> Candidate | None:
+    """The best larger pose about ``best``'s place, climbed and polished, still nearer than
+    ``MAX_DEPTH_RATIO`` of its distance; None if the search finds none."""
     if (best.R @ graph.model_center + best.t)[2] <= 0:
-        return best
+        return None
     centre, size = projected_place(graph, best.R, best.t, frame)
     # no larger than the search's own largest size: a pose very near the camera (a not-found
     # image's best) would otherwise ask for templates, and maps padded for them, of many
@@ -85,7 +93,7 @@ def larger_pose(best: Candidate, graph: AspectGraph, frame: Frame, p: EstimatorP
     sizes = size * SIZE_RATIOS
     sizes = sizes[sizes <= search.sizes(frame, p.search, p.pose.distances)[-1]]
     if not len(sizes):
-        return best
+        return None
     h, w = frame.evidence.shape
     x0, y0 = np.clip(np.floor(centre - BOX_HALF_WIDTH * size), 0, [w, h]).astype(int)
     x1, y1 = np.clip(np.ceil(centre + BOX_HALF_WIDTH * size), 0, [w, h]).astype(int)
@@ -98,14 +106,18 @@ def larger_pose(best: Candidate, graph: AspectGraph, frame: Frame, p: EstimatorP
     verified += depth_sweep(sorted(verified, key=lambda c: -c.score)[:SWEEP_STARTS], graph, frame, p, refiner, pool)
     larger = [c for c in verified if centre_distance(graph, c) < MAX_DEPTH_RATIO * distance]
     if not larger:
-        return best
+        return None
     rival = refiner.best(larger, frame, p.pose, pool)
     # the climb and polish may carry a larger start back to the pose's own depth (a twin of it)
-    if centre_distance(graph, rival) >= MAX_DEPTH_RATIO * distance:
-        return best
+    return rival if centre_distance(graph, rival) < MAX_DEPTH_RATIO * distance else None
+
+
+def prefers_rival(best: Candidate, rival: Candidate, graph: AspectGraph, frame: Frame, p: EstimatorParams) -> bool:
+    """Whether the larger ``rival`` replaces ``best``: it scores more, or at least
+    ``EVIDENCE_SCORE_SHARE`` as much and carries more evidence against chance (module doc)."""
     if rival.score > best.score:
-        return rival
+        return True
     if rival.score < EVIDENCE_SCORE_SHARE * best.score:
-        return best
+        return False
     surprises = pose_surprises(graph, np.array([rival.R, best.R]), np.array([rival.t, best.t]), frame, p.pose)
-    return rival if surprises[0] > surprises[1] else best
+    return bool(surprises[0] > surprises[1])
