@@ -39,12 +39,13 @@ sys.path.insert(0, str(REPO))
 
 from bench.accuracy import (PARTS, add_scene_arguments, bench_steps, distractor_meshes, graph_and_model,  # noqa: E402
                             scene)
+from bench.occlusion_diagnosis import refined_truth  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import pose_errors  # noqa: E402
 from brepose_ros.geometry import rotation_about, rotation_angle_deg  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
-from brepose_ros.online.refinement import CLIMB_ROUNDS, Candidate, hypothesis_rounds  # noqa: E402
+from brepose_ros.online.refinement import CLIMB_ROUNDS, Candidate  # noqa: E402
 from brepose_ros.online.symmetry import pick_by_evidence  # noqa: E402
 from brepose_ros.online.workers import SERIAL  # noqa: E402
 
@@ -98,15 +99,6 @@ def describe_wrong(est, entry, graph: AspectGraph, axes: np.ndarray) -> dict:
             "across": float(np.linalg.norm(offset - (offset @ sight) * sight) / graph.model_diameter)}
 
 
-def truth_score(estimator: Estimator, frame: Frame, entry) -> float:
-    """The truth refined as a hypothesis is, then polished; the better score of the two."""
-    refiner, p = estimator._refiner, estimator.params.pose
-    R, t, score = refiner.refined_scores(entry.R[None].astype(float), entry.t[None].astype(float), frame, p,
-                                         hypothesis_rounds(p.refine_iterations), SERIAL)
-    polished = refiner.polish(Candidate(float(score[0]), R[0], t[0], None), frame, p)
-    return max(float(score[0]), polished.score)
-
-
 def flip_check(estimator: Estimator, frame: Frame, best: Candidate, axes: np.ndarray) -> tuple[Candidate, list]:
     """The generic alternates of ``best`` refined, the best climbed and polished, and the pose the twin
     check's rule keeps; and the alternates' start poses."""
@@ -156,7 +148,7 @@ def main(argv=None) -> int:
                 row["broken"] += right and not kept_right
                 if not right:
                     record |= describe_wrong(est, entry, graph, axes)
-                    record["truth_score"] = truth_score(estimator, frame, entry)
+                    record["truth_score"] = refined_truth(estimator, frame, entry).score
                     row["wrong"] += 1
                     row["half_turn"] += record["angle"] > HALF_TURN_DEG and abs(record["depth"] - 1) < DEPTH_SAME
                     row["other_depth"] += abs(record["depth"] - 1) >= DEPTH_SAME

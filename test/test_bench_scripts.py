@@ -3,6 +3,8 @@ into the estimator's modules by name, so a renamed function breaks it silently o
 import importlib
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
@@ -56,3 +58,21 @@ def test_compare_runs_counts_righted_and_lost_images_and_tests_their_split(tmp_p
     out = capsys.readouterr().out
     assert "| all | | 12 | 2 -> 10 |" in out
     assert "sign test: 10 righted, 2 lost, two-sided p = 0.039" in out
+
+
+def test_the_silhouette_contrast_tells_the_part_from_a_copy_inside_it_and_from_background():
+    from bench.silhouette_contrast import band_contrast, quantised
+
+    image = np.full((100, 100), 200, np.uint8)
+    image[30:70, 30:70] = 60
+    part, copy, patch = (np.zeros((100, 100), np.uint8) for _ in range(3))
+    part[30:70, 30:70] = 1
+    copy[40:60, 40:60] = 1  # a shrunken pose lying on the part: part on both sides of its outline
+    patch[5:25, 5:25] = 1
+    for shown in (image, cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)):
+        bins, n_bins = quantised(shown)
+        assert band_contrast(bins, n_bins, part, 4.0) == pytest.approx(1.0)
+        assert band_contrast(bins, n_bins, copy, 4.0) == pytest.approx(0.0)
+        assert band_contrast(bins, n_bins, patch, 4.0) == pytest.approx(0.0)
+        assert 0.0 < band_contrast(bins, n_bins, np.roll(part, 20, axis=1), 4.0) < 0.5
+    assert np.isnan(band_contrast(bins, n_bins, None, 4.0))
