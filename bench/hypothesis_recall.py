@@ -43,7 +43,7 @@ from brepose_ros.geometry import rotation_angle_deg  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.image_edges import detect_edges  # noqa: E402
-from brepose_ros.online.larger import larger_pose  # noqa: E402
+from brepose_ros.online.larger import larger_check_applies, larger_pose  # noqa: E402
 from brepose_ros.online.symmetry import check_rivals, check_twins  # noqa: E402
 from brepose_ros.params import GENERATORS, EstimatorParams  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
@@ -79,7 +79,7 @@ def chosen_pose(estimator: Estimator, candidates: list, frame: Frame, p: Estimat
     if not rivals:
         return refiner.best(candidates, frame, p.pose)
     best = check_rivals(refiner.finalists(candidates, frame, p.pose), estimator.graph, frame, p.pose)
-    if p.pose.larger_check and estimator._search is not None and best.score < p.search.enough_score:
+    if larger_check_applies(best, p, estimator._search):
         best = larger_pose(best, estimator.graph, frame, p, estimator._search, estimator._hypotheses, refiner)
     return best
 

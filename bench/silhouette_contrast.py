@@ -39,9 +39,7 @@ from brepose_ros.camera import Camera  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.offline.cad import Mesh, load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
-from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.scoring import pose_surprises, visible_rows  # noqa: E402
-from brepose_ros.online.workers import SERIAL  # noqa: E402
 
 #: each band is this share of the part's projected size wide, and at least MIN_BAND_PX
 BAND_SHARE = 0.06
@@ -152,8 +150,8 @@ def records(args) -> list[dict]:
             for i, entry in enumerate(cached.entries, start=args.start):
                 image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
                 captured.clear()
-                est = estimator.estimate(image, camera)
-                _, frame = Frame.detect(image, camera, p.edges, SERIAL)
+                frame = estimator.part_frame(image, camera)  # the edges once, for the estimate and the cues
+                est = estimator.estimate(image, camera, frame=frame)
                 truth = refined_truth(estimator, frame, entry)
                 poses = [("finalist", c.score, c.R, c.t) for c in captured]
                 if est.found:

@@ -62,7 +62,7 @@ from ..camera import Camera
 from ..params import EstimatorParams, PoseParams, SearchParams
 from .frame import Frame
 from .hypotheses import TetradHypotheses, best_covered, best_per_region
-from .larger import centre_distance, larger_pose, projected_place
+from .larger import centre_distance, larger_check_applies, larger_pose, projected_place
 from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
@@ -226,7 +226,7 @@ class Estimator:
             best = self._likelier_in_places(best, image, camera, regions, frame, p, hypotheses, search, pool,
                                             calibration, timings)
         clock = time.perf_counter()
-        if p.pose.larger_check and search is not None and best.score < p.search.enough_score:
+        if larger_check_applies(best, p, search):
             best = larger_pose(best, self.graph, frame, p, search, hypotheses, self._refiner, pool)
             clock = _lap(timings, "larger", clock)
         margin, tied = None, False

@@ -73,6 +73,13 @@ def projected_place(graph: AspectGraph, R: np.ndarray, t: np.ndarray, frame: Fra
             graph.model_diameter * frame.camera.focal / depth)
 
 
+def larger_check_applies(best: Candidate, p: EstimatorParams, search: TemplateSearch | None) -> bool:
+    """Whether the check runs on ``best``: it is on (``pose.larger_check``), there is a template
+    search to run, and the pose scores below ``search.enough_score`` (a pose above it stopped
+    the generators and is taken as clear)."""
+    return p.pose.larger_check and search is not None and best.score < p.search.enough_score
+
+
 def larger_pose(best: Candidate, graph: AspectGraph, frame: Frame, p: EstimatorParams, search: TemplateSearch,
                 hypotheses: TetradHypotheses, refiner: PoseRefiner, pool: WorkerPool = SERIAL) -> Candidate:
     """``best``, or a larger pose about its place that the image prefers (module doc)."""
