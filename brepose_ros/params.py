@@ -298,6 +298,12 @@ class SearchParams(Ranged):
     seed_window: float = doc("'seeded', 'windows': image segments within this many part radii of a seed's "
                              "centre are matched to its view", 1.2, 0.1, 4.0)
     windows: int = doc("'windows': best distinct places of the search matched as regions", 6, 1, 64)
+    time_budget_ms: float = doc(
+        "an image's soft deadline, milliseconds from the start of its estimate; 0: none. Past it no further "
+        "generator, colour place or larger check starts (the estimate's 'skipped' names them); the first "
+        "generator, the finalists' climb and the twin check always run, so an image takes the budget plus its "
+        "last steps. The occluded latency images: 100 ms keeps the tetrads and the windows, at a cost in "
+        "right poses (docs/results/latency.md, session 26)", 0.0, 0.0, 60000.0)
 
     def __post_init__(self):
         stages = self.stages

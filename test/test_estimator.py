@@ -311,6 +311,38 @@ def test_a_known_working_distance_keeps_the_true_pose_and_refuses_other_depths(b
     assert kept_right >= 2, "too few right poses at default to test the range on"
 
 
+@pytest.mark.slow
+def test_a_spent_budget_leaves_the_later_generators_out_and_says_so(bracket, estimator, tmp_path):
+    """On occluded images among clutter, where the first generator does not settle the pose,
+    a budget of a millisecond runs the first generator alone: a pose is still chosen, and the
+    estimate names every later generator as skipped; without a budget none is, and the pose
+    is the default's to the bit."""
+    generate_scene(bracket[0], tmp_path / "scene", 2, seed=7,
+                   config=SceneConfig(offcenter=True, clutter=3, occlusion=0.3))
+    scene = load_scene(tmp_path / "scene")
+    default = estimator.params
+    try:
+        for entry in scene.entries:
+            image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
+            estimator.params = default
+            reference = estimator.estimate(image, scene.camera)
+            assert reference.skipped == ()
+            estimator.params = default.with_flat({"search.time_budget_ms": 0.001})
+            quick = estimator.estimate(image, scene.camera)
+            assert quick.skipped[:3] == default.search.stages[1:]
+            assert quick.score > 0 and quick.view_index >= 0
+            assert set(quick.timings) >= {"prefilter", "matching", "refinement"}
+            assert "search" not in quick.timings  # the template search never started
+            estimator.params = default.with_flat({"search.time_budget_ms": 60000.0})
+            full = estimator.estimate(image, scene.camera)
+            assert full.skipped == () and full.score == reference.score
+            assert (full.R is None) == (reference.R is None)
+            if full.R is not None:
+                assert (full.R == reference.R).all() and (full.t == reference.t).all()
+    finally:
+        estimator.params = default
+
+
 FIRST_IMAGE_SCRIPT = """
 import sys
 import cv2

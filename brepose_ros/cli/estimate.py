@@ -52,6 +52,8 @@ def main(argv=None) -> int:
             if estimate.found and estimate.ambiguous:
                 state += f", ambiguous: the image cannot tell it from a symmetric twin (margin " \
                          f"{estimate.symmetry_margin:.2f})"
+            if estimate.skipped:
+                state += f", time budget spent before: {', '.join(estimate.skipped)}"
             print(f"{path}: {state}, error ratio {estimate.error_ratio:.2f}, "
                   f"{estimate.timings.get('total', 0) * 1000:.0f} ms", file=sys.stderr)
             if args.overlays:

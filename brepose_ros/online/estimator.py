@@ -46,7 +46,10 @@ baseline of bench/paper_figures.py and of the learning (brepose-learn).
 The generators run in the order named; a later one only while the best pose so far,
 climbed and polished, scores below ``search.enough_score``. The tetrad generator matches
 and verifies the whole image, then the clusters only when no pose so far scores
-``scoring.CLEAR_SCORE``.
+``scoring.CLEAR_SCORE``. With ``search.time_budget_ms`` a later generator, a colour place
+and the larger check start only if they still fit before the image's deadline, judged on
+what they took on this estimator's recent images (``time_budget``): a cell that needs an
+answer in time gets the best pose of what ran, and the estimate names the rest.
 """
 from __future__ import annotations
 
@@ -72,6 +75,7 @@ from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_scores, pose_shares, 
 from .search import TemplateSearch
 from .small import small_part_seeds
 from .symmetry import check_rivals, check_twins
+from .time_budget import StepCosts, TimeBudget
 from .workers import WorkerPool, keep_freed_memory, resolve_workers
 
 
@@ -126,6 +130,10 @@ class Estimate:
     #: how far the final pose's model centre lies from the camera, metres (also when not found);
     #: 0 when no pose was verified
     distance: float = 0.0
+    #: the steps not started because they would have overrun the image's time budget
+    #: (``time_budget.TimeBudget``)
+    skipped: tuple[str, ...] = ()
+
 
 
 class Estimator:
@@ -149,6 +157,7 @@ class Estimator:
         self._lock = threading.Lock()
         self._search = template_search(graph, self._params.search)
         self._calibration = load_calibration(self._params.pose.confidence_file)
+        self._step_costs = StepCosts()
 
     @property
     def params(self) -> EstimatorParams:
@@ -205,6 +214,7 @@ class Estimator:
             old.close()
         timings: dict[str, float] = {}
         clock = time.perf_counter()
+        budget = TimeBudget.starting_now(p.search.time_budget_ms, self._step_costs)
         if image.ndim < 2 or image.shape[0] != camera.height or image.shape[1] != camera.width:
             raise ValueError(f"image of shape {image.shape} does not fit the camera's "
                              f"{camera.width}x{camera.height}")
@@ -219,15 +229,18 @@ class Estimator:
         groups = region_groups(frame, p.matching)
         if paper_only:
             return self._paper_estimate(groups, frame, p, hypotheses, pool, not_found, clock)
-        best = self._chosen(frame, groups, p, hypotheses, search, pool, calibration, timings, clock)
+        best = self._chosen(frame, groups, p, hypotheses, search, pool, calibration, timings, clock, budget)
         if best is None:
+            budget.finished()
+            not_found.skipped = tuple(budget.skipped)
             return not_found
         if regions is not None:
             best = self._likelier_in_places(best, image, camera, regions, frame, p, hypotheses, search, pool,
-                                            calibration, timings)
+                                            calibration, timings, budget)
         clock = time.perf_counter()
-        if larger_check_applies(best, p, search):
+        if larger_check_applies(best, p, search) and budget.allows("larger"):
             best = larger_pose(best, self.graph, frame, p, search, hypotheses, self._refiner, pool)
+            budget.close()
             clock = _lap(timings, "larger", clock)
         margin, tied = None, False
         if p.pose.twin_check:
@@ -235,18 +248,22 @@ class Estimator:
             clock = _lap(timings, "symmetry", clock)
         timings["total"] = sum(timings.values())
         estimate = self._described(best, frame, p, calibration, margin, timings, tied)
+        budget.finished()
+        estimate.skipped = tuple(budget.skipped)
         if is_found(estimate, p.pose):
             estimate.found, estimate.R, estimate.t, estimate.covariance = True, best.R, best.t, best.covariance
         return estimate
 
     def _chosen(self, frame: Frame, groups: list, p: EstimatorParams, hypotheses: TetradHypotheses,
                 search: TemplateSearch | None, pool: WorkerPool, calibration, timings: dict,
-                clock: float) -> Candidate | None:
+                clock: float, budget: TimeBudget) -> Candidate | None:
         """The frame's pose before the larger and twin checks (steps 3-4): the best finalist of
         the generators' candidates or a rival at its place, a small pose only where likelier
         than the search's sizes' best; None without a candidate."""
         climbs: dict = {}  # the view climbs made on this frame (``PoseRefiner._climbed``)
-        candidates, best = self._candidates(frame, groups, p, hypotheses, search, pool, timings, clock, climbs)
+        candidates, best = self._candidates(frame, groups, p, hypotheses, search, pool, timings, clock, climbs,
+                                            budget)
+        budget.generators_done()
         if not candidates:
             return None
         if best is None:
@@ -262,19 +279,21 @@ class Estimator:
     def _likelier_in_places(self, best: Candidate, image: np.ndarray, camera: Camera, regions: np.ndarray,
                             frame: Frame, p: EstimatorParams, hypotheses: TetradHypotheses,
                             search: TemplateSearch | None, pool: WorkerPool, calibration,
-                            timings: dict) -> Candidate:
+                            timings: dict, budget: TimeBudget) -> Candidate:
         """``best``, or the pose chosen within one of the colour regions' places alone
         (``colour_places``, ``edges.colour_places``) where it scores more on the whole regions'
         ``frame``: on the LM-O photos the whole regions' search seeded no pose near 12 well-visible
         cats, within the cat's own place 7 of them had a candidate near (docs/results/real_lmo.md)."""
         for place in colour_places(image, self.graph.colour_histogram, regions, p.edges.colour_places):
+            if not budget.allows("colour place"):
+                break
             clock = time.perf_counter()
             within = Frame.detect(image, camera, p.edges, pool, scored_tolerances(self.graph, p.pose), place)[1]
             clock = _lap(timings, "edges", clock)
             if len(within.segments_px) < MIN_REGION_SEGMENTS:
                 continue
             chosen = self._chosen(within, region_groups(within, p.matching), p, hypotheses, search, pool,
-                                  calibration, timings, clock)
+                                  calibration, timings, clock, budget)
             if chosen is None:
                 continue
             score = float(pose_scores(self.graph, chosen.R[None], chosen.t[None], frame, p.pose)[0])
@@ -345,18 +364,22 @@ class Estimator:
         the seconds of each stage are added to ``timings`` if given."""
         p = self._params
         return self._candidates(frame, region_groups(frame, p.matching), p, self._hypotheses, self._search,
-                                self._pool, {} if timings is None else timings, time.perf_counter(), {})[0]
+                                self._pool, {} if timings is None else timings, time.perf_counter(), {},
+                                TimeBudget())[0]
 
     def _candidates(self, frame: Frame, groups: list, p: EstimatorParams, hypotheses: TetradHypotheses,
                     search: TemplateSearch | None, pool: WorkerPool, timings: dict, clock: float,
-                    climbs: dict) -> tuple[list[Candidate], Candidate | None]:
+                    climbs: dict, budget: TimeBudget) -> tuple[list[Candidate], Candidate | None]:
         """Refined, scored hypotheses of the chosen generators (module doc, steps 2-4), and the
         best of them climbed and polished if a generator was skipped for it (else None);
-        ``climbs`` keeps the image's view climbs for the later stages and the finalists."""
+        ``climbs`` keeps the image's view climbs for the later stages and the finalists; a
+        generator after the first starts only while ``budget`` allows."""
         candidates: list[Candidate] = []
         coarse = None  # the template search's, once per image for every stage that needs it
         for n, stage in enumerate(p.search.stages):
             candidates = in_working_range(candidates, self.graph, p.pose)
+            if n and not budget.allows(*p.search.stages[n:]):
+                break
             if n and candidates:
                 # the climbed, polished pose decides, not the raw candidates: on the bench a
                 # right pose's candidate scored 0.75-0.94 and the climb lifted it, while wrong

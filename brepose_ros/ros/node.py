@@ -21,7 +21,8 @@ Topics (node name ``estimator``; relative names can be remapped with ``--ros-arg
   image or the intrinsics could not be used, or the estimator raised (also logged). Values:
   found, score, confidence (the probability that the pose is right), error_ratio,
   view_index, image_edges, matched_pairs, nearest_pairs, symmetry_margin (-1 for a part
-  without near symmetry), estimator_ms, latency_ms (receipt
+  without near symmetry), twin_tie, skipped (the steps ``search.time_budget_ms`` left out,
+  empty without one), estimator_ms, latency_ms (receipt
   to answer), frames_skipped (frames received but replaced by a newer one before the worker
   got to them), frames_lost (samples the DDS reader reported lost), input_hz, and the
   estimator's own stage timings as ``<stage>_ms``. Besides, a status ``estimator: input``
@@ -295,7 +296,9 @@ def estimate_values(estimate: Estimate) -> dict[str, Any]:
               # evidence over the symmetric twins; -1: the part has no near symmetry
               "symmetry_margin": -1.0 if estimate.symmetry_margin is None else float(estimate.symmetry_margin),
               # a twin the image does not tell from the pose scores as well: a coin toss
-              "twin_tie": estimate.twin_tie}
+              "twin_tie": estimate.twin_tie,
+              # the steps search.time_budget_ms left out on this image, space-separated
+              "skipped": " ".join(estimate.skipped)}
     values.update({f"{stage}_ms": 1000.0 * float(s) for stage, s in estimate.timings.items()})
     return values
 
