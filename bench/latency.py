@@ -3,8 +3,9 @@ the number of views, on clean and occluded scenes; start-up and first-image time
 
     python bench/latency.py [--views 500 2500 10000] [--workers 1 2 4] [--parts 1 2 4]
                             [--scenes clean occluded] [--n 6] [--rounds 2] [--part sharp_bracket]
+                            [--look plain|varied] [--tables budgets --budgets 0 100 250]
 
-Three tables, each measured within one run with the settings alternating image by image
+Four tables, each measured within one run with the settings alternating image by image
 (the order turns every round), so that a machine busy with other jobs slows every setting
 alike and the ratios stay fair while the absolute times are upper bounds:
 
@@ -19,13 +20,18 @@ alike and the ratios stay fair while the absolute times are upper bounds:
   node shared them); wall time per image and its ratio to one part;
 - start: in a fresh process, as a node starts: loading the graph and building the
   estimator ("setup s"), the first image's time, and its ratio to the steady state (the
-  median of the later images).
+  median of the later images);
+- budgets (only when asked): ``search.time_budget_ms`` per image, ms per image (median,
+  90th percentile, most), how many images left a step out, and how many kept the pose
+  found without a budget (the first setting).
 
 The load average is printed before each table and at the end.
 
 Graphs (golden-spiral sampling with the step that gives about that many views) and scenes
-(clean; occluded = 30 % occlusion, off-centre, 3 clutter objects) are cached in
-data/bench/; compiling the 10,000-view sharp_bracket takes about two minutes on 2 cores.
+(clean; occluded = 30 % occlusion, off-centre, 3 clutter objects; ``--look``: the plain look of
+the first sessions, or the bench's varied light, backgrounds, blur and noise, where the later
+generators run far more often) are cached in data/bench/; compiling the 10,000-view
+sharp_bracket takes about two minutes on 2 cores.
 """
 from __future__ import annotations
 
@@ -50,7 +56,7 @@ from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.workers import WorkerPool  # noqa: E402
 from brepose_ros.params import EstimatorParams  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
-from brepose_ros.synthetic.scenes import SceneConfig, generate_scene  # noqa: E402
+from brepose_ros.synthetic.scenes import LOOKS, SceneConfig, generate_scene  # noqa: E402
 from brepose_ros.viewsphere import fibonacci_step  # noqa: E402
 
 STAGES = ("edges", "prefilter", "matching", "refinement", "search", "total")
@@ -141,6 +147,30 @@ def parts_table(graph: AspectGraph, scene, images, parts: list[int], part_worker
     return rows
 
 
+def budgets_table(graph: AspectGraph, scene, images, budgets: list[float], rounds: int) -> list[str]:
+    estimators = {b: Estimator(graph, EstimatorParams().with_flat({"search.time_budget_ms": b})) for b in budgets}
+    for e in estimators.values():
+        e.estimate(images[0], scene.camera)  # each step's cost timed once before the budget judges it
+
+    def run(b, image):
+        start = time.perf_counter()
+        estimate = estimators[b].estimate(image, scene.camera)
+        return time.perf_counter() - start, estimate
+
+    results = alternate(budgets, images, rounds, run)
+    for e in estimators.values():
+        e.close()
+    unbudgeted = [pose_key(e) for _, e in results[budgets[0]]]
+    rows = []
+    for b in budgets:
+        ms = 1000.0 * np.array([s for s, _ in results[b]])
+        cut = sum(bool(e.skipped) for _, e in results[b])
+        same = sum(pose_key(e) == key for (_, e), key in zip(results[b], unbudgeted))
+        rows.append(f"| {b:g} | {np.median(ms):.0f} | {np.percentile(ms, 90):.0f} | {ms.max():.0f} | "
+                    f"{cut} of {len(ms)} | {same} of {len(ms)} |")
+    return rows
+
+
 def start_row(path: Path, scene, images, workers: int) -> str:
     start = time.perf_counter()
     estimator = Estimator(AspectGraph.load(path), with_workers(workers))
@@ -157,12 +187,12 @@ def start_row(path: Path, scene, images, workers: int) -> str:
             f"{peak:.0f} |")
 
 
-def latency_scene(step: Path, cache: Path, name: str, n: int) -> tuple:
-    """The cached latency scene ``name`` (a key of ``SCENES``) of ``n`` images, made on first
-    use, and its images read."""
-    folder = cache / f"scene_{step.stem}_latency_{name}_{n}"
+def latency_scene(step: Path, cache: Path, name: str, n: int, look: str = "plain") -> tuple:
+    """The cached latency scene ``name`` (a key of ``SCENES``) of ``n`` images in ``look``,
+    made on first use, and its images read."""
+    folder = cache / (f"scene_{step.stem}_latency_{name}_{n}" + ("" if look == "plain" else f"_{look}"))
     if not (folder / "gt.json").exists():
-        generate_scene(step, folder, n, seed=7, config=SceneConfig(**CONDITIONS[SCENES[name]]))
+        generate_scene(step, folder, n, seed=7, config=SceneConfig(look=look, **CONDITIONS[SCENES[name]]))
     scene = load_scene(folder)
     return scene, [cv2.imread(str(e.path), cv2.IMREAD_UNCHANGED) for e in scene.entries]
 
@@ -181,7 +211,10 @@ def main(argv=None) -> int:
     parser.add_argument("--part-workers", type=int, default=0, help="matching.workers of each part (0 = cores)")
     parser.add_argument("--scenes", nargs="*", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--tables", nargs="*", default=["workers", "parts", "start"],
-                        choices=["workers", "parts", "start"])
+                        choices=["workers", "parts", "start", "budgets"])
+    parser.add_argument("--budgets", type=float, nargs="*", default=[0, 100, 250],
+                        help="search.time_budget_ms settings of the budgets table (ms; 0: none, put first)")
+    parser.add_argument("--look", default="plain", choices=LOOKS, help="scene look (default plain)")
     parser.add_argument("--n", type=int, default=6, help="images per scene")
     parser.add_argument("--rounds", type=int, default=2, help="passes over the images, the order turned each time")
     parser.add_argument("--part", default="sharp_bracket")
@@ -190,7 +223,7 @@ def main(argv=None) -> int:
     cache = REPO / "data" / "bench"
     cache.mkdir(parents=True, exist_ok=True)
     step = step_file(args.part, cache)
-    scenes = {name: latency_scene(step, cache, name, args.n) for name in args.scenes}
+    scenes = {name: latency_scene(step, cache, name, args.n, args.look) for name in args.scenes}
     paths = {views: cached_graph_path(step, cache, fibonacci_step(views), label=f"{views}views")
              for views in args.views}
     if args.start_only:  # the child process of the start table
@@ -225,9 +258,19 @@ def main(argv=None) -> int:
             for name in scenes:
                 child = subprocess.run([sys.executable, __file__, "--start-only", str(views), name,
                                         "--views", str(views), "--scenes", name, "--n", str(args.n),
-                                        "--part", args.part, "--part-workers", str(args.part_workers)],
+                                        "--part", args.part, "--part-workers", str(args.part_workers),
+                                        "--look", args.look],
                                        capture_output=True, text=True, check=True)
                 print(f"| {views} | {name} | {args.part_workers} {child.stdout.strip()}", flush=True)
+    if "budgets" in args.tables:
+        print(load_average())
+        print("\n| views | scene | budget ms | ms/image | 90 % | most | a step left out | pose as without a budget |")
+        print("|" + "---|" * 8)
+        for views, path in paths.items():
+            graph = AspectGraph.load(path)
+            for name, (scene, images) in scenes.items():
+                for row in budgets_table(graph, scene, images, args.budgets, args.rounds):
+                    print(f"| {graph.n_views} | {name} {row}", flush=True)
     print(load_average())
     return 0
 

@@ -48,6 +48,18 @@ def curve(rows: list[dict], part_set: str, metric: str) -> tuple[list[float], li
     return xs, ys, rate(clean, metric)
 
 
+def load_runs(arguments: list[str]) -> dict[str, list[dict]]:
+    """{label: rows} of ``[LABEL=]results.json`` arguments, the rows of one label's files
+    merged (a run split by part); without a label, the file's own."""
+    runs: dict[str, list[dict]] = {}
+    for item in arguments:
+        label, _, path = item.rpartition("=")
+        data = json.loads(Path(path).read_text())
+        label = label or data.get("label", Path(path).stem)
+        runs[label] = runs.get(label, []) + data["rows"]
+    return runs
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("results", nargs="+", help="[LABEL=]results.json of bench/accuracy.py")
@@ -55,26 +67,16 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "figures" / "accuracy_vs_occlusion.png")
     args = parser.parse_args(argv)
     plt = pyplot()
-
-    merged: dict[str, dict] = {}
-    for item in args.results:
-        label, _, path = item.rpartition("=")
-        data = json.loads(Path(path).read_text())
-        label = label or data.get("label", Path(path).stem)
-        if label in merged:
-            merged[label]["rows"] = merged[label]["rows"] + data["rows"]
-        else:
-            merged[label] = data
-    runs = list(merged.items())
+    runs = list(load_runs(args.results).items())
     key, axis_label = METRICS[args.metric]
     fig, axes = plt.subplots(1, len(SETS), figsize=(5.2 * len(SETS), 4.0), sharey=True)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, part_set in zip(axes, SETS):
-        for (label, data), colour in zip(runs, colours):
-            xs, ys, clean = curve(data["rows"], part_set, key)
+        for (label, rows), colour in zip(runs, colours):
+            xs, ys, clean = curve(rows, part_set, key)
             if not xs:
                 continue
-            chosen = [r for r in data["rows"] if r["set"] == part_set and r["condition"] == "clean"]
+            chosen = [r for r in rows if r["set"] == part_set and r["condition"] == "clean"]
             n_parts = len({r["part"] for r in chosen})
             per_part = sum(len(r["images"]) for r in chosen) // max(n_parts, 1)
             ax.plot(xs, ys, "o-", color=colour, label=f"{label} ({n_parts} parts, {per_part} images each)")

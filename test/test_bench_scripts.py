@@ -60,6 +60,20 @@ def test_compare_runs_counts_righted_and_lost_images_and_tests_their_split(tmp_p
     assert "sign test: 10 righted, 2 lost, two-sided p = 0.039" in out
 
 
+def test_an_operating_point_counts_right_and_wrong_found_poses_and_times_every_image():
+    from bench.speed_accuracy import operating_point
+
+    def image(found, right, ms):
+        return {"found": found, "success_sym": right, "ms": ms}
+
+    rows = [{"condition": "clean", "images": [image(True, True, 100), image(True, False, 200)]},
+            {"condition": "clutter", "images": [image(False, True, 300), image(True, True, 400)]}]
+    point = operating_point(rows)
+    assert point["right"] == 2 and point["wrong"] == 1  # a right pose not found is not right
+    assert point["by_condition"] == {"clean": 1, "clutter": 1}
+    assert point["per_condition"] == {"clean": 2, "clutter": 2}
+    assert point["median_ms"] == 250 and 300 < point["p90_ms"] < 400
+
 def test_the_silhouette_contrast_tells_the_part_from_a_copy_inside_it_and_from_background():
     from bench.silhouette_contrast import band_contrast, quantised
 
