@@ -19,8 +19,9 @@ alike and the ratios stay fair while the absolute times are upper bounds:
   once for all parts as the node does ("once") or by each part ("per part", as before the
   node shared them); wall time per image and its ratio to one part;
 - start: in a fresh process, as a node starts: loading the graph and building the
-  estimator ("setup s"), the first image's time, and its ratio to the steady state (the
-  median of the later images);
+  estimator ("setup s"), the first image's time, the steady state (the median of the later
+  images), and the first image's time over its own once the rest have run (what starting
+  costs, apart from how hard that image is);
 - budgets (only when asked): ``search.time_budget_ms`` per image, ms per image (median,
   90th percentile, most), how many images left a step out, and how many kept the pose
   found without a budget (the first setting).
@@ -180,11 +181,14 @@ def start_row(path: Path, scene, images, workers: int) -> str:
         start = time.perf_counter()
         estimator.estimate(image, scene.camera)
         seconds.append(time.perf_counter() - start)
+    start = time.perf_counter()
+    estimator.estimate(images[0], scene.camera)
+    again = time.perf_counter() - start
     estimator.close()
     steady = float(np.median(seconds[1:]))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return (f"| {setup:.1f} | {1000 * seconds[0]:.0f} | {1000 * steady:.0f} | {seconds[0] / steady:.2f} | "
-            f"{peak:.0f} |")
+            f"{1000 * again:.0f} | {seconds[0] / again:.2f} | {peak:.0f} |")
 
 
 def latency_scene(step: Path, cache: Path, name: str, n: int, look: str = "plain") -> tuple:
@@ -252,8 +256,9 @@ def main(argv=None) -> int:
                     print(f"| {graph.n_views} | {name} {row}", flush=True)
     if "start" in args.tables:
         print(load_average())
-        print("\n| views | scene | workers | setup s | first image ms | steady ms | first / steady | peak RSS MB |")
-        print("|" + "---|" * 8)
+        print("\n| views | scene | workers | setup s | first image ms | steady ms | first / steady | "
+              "that image again ms | first / again | peak RSS MB |")
+        print("|" + "---|" * 10)
         for views in paths:
             for name in scenes:
                 child = subprocess.run([sys.executable, __file__, "--start-only", str(views), name,
