@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -570,3 +571,12 @@ def test_diagnostics_say_when_the_best_pose_lies_outside_the_working_range():
     inside = Estimate(False, None, None, score=0.3, error_ratio=0.2, view_index=3, n_image_segments=12, n_matched=8,
                       n_nearest=6, confidence=0.01, distance=0.5)
     assert "pose.min_score" in diagnose(inside, params)[1]
+
+
+def test_diagnostics_name_the_steps_a_time_budget_left_out():
+    from brepose_ros.ros.node import estimate_values
+
+    hurried = Estimate(True, R_FAKE, T_FAKE, score=0.8, error_ratio=0.2, view_index=3, n_image_segments=12,
+                       n_matched=8, n_nearest=6, skipped=("seeded", "small", "larger"))
+    assert estimate_values(hurried)["skipped"] == "seeded small larger"
+    assert estimate_values(replace(hurried, skipped=()))["skipped"] == ""
