@@ -1,7 +1,7 @@
 """Where one image's CPU time goes, by the worker pool's call sites, and how well it splits.
 
     python bench/thread_sites.py [--scene occluded|clean] [--views 2500] [--n 6] [--rounds 2]
-                                 [--workers 1] [--part sharp_bracket]
+                                 [--workers 1] [--part sharp_bracket] [--look plain|varied]
 
 Runs ``Estimator.estimate`` over bench/latency.py's images with every ``WorkerPool.map`` call
 timed: per call site (the function that called ``map`` and its caller), the CPU time of its
@@ -32,6 +32,7 @@ sys.path.insert(0, str(REPO))
 from bench.accuracy import step_file  # noqa: E402
 from bench.graphs import cached_graph_path  # noqa: E402
 from bench.latency import SCENES, latency_scene, load_average, with_workers  # noqa: E402
+from brepose_ros.synthetic.scenes import LOOKS  # noqa: E402
 from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.online import workers  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
@@ -102,10 +103,11 @@ def main(argv=None) -> int:
     parser.add_argument("--n", type=int, default=6, help="images")
     parser.add_argument("--rounds", type=int, default=2, help="passes over the images")
     parser.add_argument("--part", default="sharp_bracket")
+    parser.add_argument("--look", default="plain", choices=LOOKS, help="scene look (bench/latency.py)")
     args = parser.parse_args(argv)
     cache = REPO / "data" / "bench"
     step = step_file(args.part, cache)
-    scene, images = latency_scene(step, cache, args.scene, args.n)
+    scene, images = latency_scene(step, cache, args.scene, args.n, args.look)
     graph = AspectGraph.load(cached_graph_path(step, cache, fibonacci_step(args.views), label=f"{args.views}views"))
     estimator = Estimator(graph, with_workers(args.workers))
     estimator.estimate(images[0], scene.camera)  # the first image is not the steady state
