@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
@@ -79,8 +78,8 @@ def candidates_and_best(estimator: Estimator, frame: Frame, p: EstimatorParams, 
     """The candidates and the chosen pose before the twin check, as ``Estimator.estimate``
     gets them at parameters ``p``; without ``rivals`` the best climbed pose, polished, as
     before the rival check (main cb60954)."""
-    candidates, best = estimator._candidates(frame, region_groups(frame, p.matching), p, estimator._hypotheses,
-                                             estimator._search, SERIAL, {}, time.perf_counter(), {})
+    candidates, best = estimator._candidates(estimator._image_work(p, SERIAL), frame, region_groups(frame, p.matching),
+                                             {})
     if candidates and best is None:
         best = chosen_pose(estimator, candidates, frame, p, rivals)
     return candidates, best
@@ -126,8 +125,8 @@ def classify(estimator: Estimator, frame: Frame, entry, model: ModelPoints, riva
     near = [k for k, c in enumerate(ordered) if near_truth(c.R, c.t, entry, g)]
     if not near:
         every = EstimatorParams().with_flat(p.flat() | {"search.enough_score": 1.01})
-        full, _ = estimator._candidates(frame, region_groups(frame, every.matching), every, estimator._hypotheses,
-                                        estimator._search, SERIAL, {}, time.perf_counter(), {})
+        full, _ = estimator._candidates(estimator._image_work(every, SERIAL), frame,
+                                        region_groups(frame, every.matching), {})
         stopped = any(near_truth(c.R, c.t, entry, g) for c in full)
         return row | dict(loss="stopped" if stopped else "none")
     best_near = ordered[near[0]]

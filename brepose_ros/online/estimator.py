@@ -70,7 +70,7 @@ from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
 from .colour_regions import colour_places, colour_regions
-from .confidence import load_calibration
+from .confidence import Calibration, load_calibration
 from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_scores, pose_shares, scored_tolerances
 from .search import TemplateSearch
 from .small import small_part_seeds
@@ -135,6 +135,27 @@ class Estimate:
     skipped: tuple[str, ...] = ()
 
 
+
+@dataclass
+class ImageWork:
+    """One image's estimate as its stages share it: the estimator's parts as they were when it
+    started (a parameter change meanwhile applies from the next image), its time budget, and
+    the seconds of its stages, each ``lap`` timed from the one before."""
+
+    p: EstimatorParams
+    hypotheses: TetradHypotheses
+    search: TemplateSearch | None
+    pool: WorkerPool
+    calibration: Calibration
+    budget: TimeBudget
+    timings: dict[str, float]
+    clock: float = field(default_factory=time.perf_counter)
+
+    def lap(self, stage: str) -> None:
+        """Add the time since the last lap (or the start) to ``stage`` (a stage may run more than once)."""
+        now = time.perf_counter()
+        self.timings[stage] = self.timings.get(stage, 0.0) + now - self.clock
+        self.clock = now
 
 class Estimator:
     """Finds one part (one aspect graph) in images, one image at a time: ``estimate`` must
@@ -206,94 +227,95 @@ class Estimator:
         Raises ValueError for an unusable image (empty, wrong shape or dtype) or an image
         whose size disagrees with the camera's.
         """
-        with self._lock:  # one consistent set for the whole image, whatever changes meanwhile
-            p, hypotheses, search, pool = self._params, self._hypotheses, self._search, self._pool
-            calibration = self._calibration
-            retired, self._retired = self._retired, []
-        for old in retired:  # the image that used them has finished: estimate is not re-entrant
-            old.close()
-        timings: dict[str, float] = {}
-        clock = time.perf_counter()
-        budget = TimeBudget.starting_now(p.search.time_budget_ms, self._step_costs)
+        work = self._image_work()
+        p = work.p
         if image.ndim < 2 or image.shape[0] != camera.height or image.shape[1] != camera.width:
             raise ValueError(f"image of shape {image.shape} does not fit the camera's "
                              f"{camera.width}x{camera.height}")
         regions = self._colour_regions(image, p)
         if frame is None or regions is not None:
-            frame = Frame.detect(image, camera, p.edges, pool, scored_tolerances(self.graph, p.pose), regions)[1]
-            clock = _lap(timings, "edges", clock)
+            frame = Frame.detect(image, camera, p.edges, work.pool, scored_tolerances(self.graph, p.pose), regions)[1]
+            work.lap("edges")
         not_found = Estimate(found=False, R=None, t=None, score=0.0, error_ratio=1.0, view_index=-1,
-                             n_image_segments=len(frame.segments_px), n_matched=0, n_nearest=0, timings=timings)
+                             n_image_segments=len(frame.segments_px), n_matched=0, n_nearest=0, timings=work.timings)
         if len(frame.segments_px) < MIN_REGION_SEGMENTS:
             return not_found
         groups = region_groups(frame, p.matching)
         if paper_only:
-            return self._paper_estimate(groups, frame, p, hypotheses, pool, not_found, clock)
-        best = self._chosen(frame, groups, p, hypotheses, search, pool, calibration, timings, clock, budget)
+            return self._paper_estimate(work, frame, groups, not_found)
+        best = self._chosen(work, frame, groups)
         if best is None:
-            budget.finished()
-            not_found.skipped = tuple(budget.skipped)
+            work.budget.finished()
+            not_found.skipped = tuple(work.budget.skipped)
             return not_found
         if regions is not None:
-            best = self._likelier_in_places(best, image, camera, regions, frame, p, hypotheses, search, pool,
-                                            calibration, timings, budget)
-        clock = time.perf_counter()
-        if larger_check_applies(best, p, search) and budget.allows("larger"):
-            best = larger_pose(best, self.graph, frame, p, search, hypotheses, self._refiner, pool)
-            budget.close()
-            clock = _lap(timings, "larger", clock)
+            best = self._likelier_in_places(work, best, image, camera, regions, frame)
+        if larger_check_applies(best, p, work.search) and work.budget.allows("larger"):
+            best = larger_pose(best, self.graph, frame, p, work.search, work.hypotheses, self._refiner, work.pool)
+            work.budget.close()
+            work.lap("larger")
         margin, tied = None, False
         if p.pose.twin_check:
-            best, margin, tied = check_twins(best, self.graph, self._refiner, frame, p.pose, pool)
-            clock = _lap(timings, "symmetry", clock)
-        timings["total"] = sum(timings.values())
-        estimate = self._described(best, frame, p, calibration, margin, timings, tied)
-        budget.finished()
-        estimate.skipped = tuple(budget.skipped)
+            best, margin, tied = check_twins(best, self.graph, self._refiner, frame, p.pose, work.pool)
+            work.lap("symmetry")
+        work.timings["total"] = sum(work.timings.values())
+        estimate = self._described(work, best, frame, margin, tied)
+        work.budget.finished()
+        estimate.skipped = tuple(work.budget.skipped)
         if is_found(estimate, p.pose):
             estimate.found, estimate.R, estimate.t, estimate.covariance = True, best.R, best.t, best.covariance
         return estimate
 
-    def _chosen(self, frame: Frame, groups: list, p: EstimatorParams, hypotheses: TetradHypotheses,
-                search: TemplateSearch | None, pool: WorkerPool, calibration, timings: dict,
-                clock: float, budget: TimeBudget) -> Candidate | None:
+    def _image_work(self, params: EstimatorParams | None = None, pool: WorkerPool | None = None,
+                    timings: dict | None = None) -> ImageWork:
+        """One image's view of the estimator, taken at once whatever a parameter change does
+        meanwhile (``params`` and ``pool`` in its stead where given: benches); the pools such
+        changes retired are closed, as the image before, which used them, has finished (one
+        estimator runs one image at a time)."""
+        with self._lock:
+            p = params or self._params
+            work = ImageWork(p, self._hypotheses, self._search, pool or self._pool, self._calibration,
+                             TimeBudget.starting_now(p.search.time_budget_ms, self._step_costs),
+                             {} if timings is None else timings)
+            retired, self._retired = self._retired, []
+        for old in retired:
+            old.close()
+        return work
+
+    def _chosen(self, work: ImageWork, frame: Frame, groups: list) -> Candidate | None:
         """The frame's pose before the larger and twin checks (steps 3-4): the best finalist of
         the generators' candidates or a rival at its place, a small pose only where likelier
         than the search's sizes' best; None without a candidate."""
+        p = work.p
         climbs: dict = {}  # the view climbs made on this frame (``PoseRefiner._climbed``)
-        candidates, best = self._candidates(frame, groups, p, hypotheses, search, pool, timings, clock, climbs,
-                                            budget)
-        budget.generators_done()
+        candidates, best = self._candidates(work, frame, groups, climbs)
+        work.budget.generators_done()
         if not candidates:
             return None
         if best is None:
-            clock = time.perf_counter()
-            finalists = self._refiner.finalists(candidates, frame, p.pose, pool, climbs)
+            finalists = self._refiner.finalists(candidates, frame, p.pose, work.pool, climbs)
             best = check_rivals(in_working_range(finalists, self.graph, p.pose) or finalists, self.graph, frame,
                                 p.pose)
             if "small" in p.search.stages:
-                best = self._likelier_than_small(best, finalists, frame, p, search, calibration)
-            _lap(timings, "refinement", clock)
+                best = self._likelier_than_small(work, best, finalists, frame)
+            work.lap("refinement")
         return best
 
-    def _likelier_in_places(self, best: Candidate, image: np.ndarray, camera: Camera, regions: np.ndarray,
-                            frame: Frame, p: EstimatorParams, hypotheses: TetradHypotheses,
-                            search: TemplateSearch | None, pool: WorkerPool, calibration,
-                            timings: dict, budget: TimeBudget) -> Candidate:
+    def _likelier_in_places(self, work: ImageWork, best: Candidate, image: np.ndarray, camera: Camera,
+                            regions: np.ndarray, frame: Frame) -> Candidate:
         """``best``, or the pose chosen within one of the colour regions' places alone
         (``colour_places``, ``edges.colour_places``) where it scores more on the whole regions'
         ``frame``: on the LM-O photos the whole regions' search seeded no pose near 12 well-visible
         cats, within the cat's own place 7 of them had a candidate near (docs/results/real_lmo.md)."""
+        p = work.p
         for place in colour_places(image, self.graph.colour_histogram, regions, p.edges.colour_places):
-            if not budget.allows("colour place"):
+            if not work.budget.allows("colour place"):
                 break
-            clock = time.perf_counter()
-            within = Frame.detect(image, camera, p.edges, pool, scored_tolerances(self.graph, p.pose), place)[1]
-            clock = _lap(timings, "edges", clock)
+            within = Frame.detect(image, camera, p.edges, work.pool, scored_tolerances(self.graph, p.pose), place)[1]
+            work.lap("edges")
             if len(within.segments_px) < MIN_REGION_SEGMENTS:
                 continue
-            chosen = self._chosen(within, region_groups(within, p.matching), p, hypotheses, search, pool,
-                                  calibration, timings, clock, budget)
+            chosen = self._chosen(work, within, region_groups(within, p.matching))
             if chosen is None:
                 continue
             score = float(pose_scores(self.graph, chosen.R[None], chosen.t[None], frame, p.pose)[0])
@@ -301,33 +323,34 @@ class Estimator:
                 best = replace(chosen, score=score)
         return best
 
-    def _described(self, best: Candidate, frame: Frame, p: EstimatorParams, calibration, margin: float | None = None,
-                   timings: dict | None = None, tied: bool = False) -> Estimate:
+    def _described(self, work: ImageWork, best: Candidate, frame: Frame, margin: float | None = None,
+                   tied: bool = False) -> Estimate:
         """What the estimate reports of a pose (not yet judged found): its score's shares, the
         error ratio, its size and the confidence."""
+        p = work.p
         pairs = edge_pairs(self.graph, best.R, best.t, frame, p)
         shares, size, length = pose_shares(self.graph, best.R, best.t, frame, p.pose)
         estimate = Estimate(found=False, R=None, t=None, score=best.score, error_ratio=pairs.error_ratio,
                             view_index=self.graph.nearest_view(best.R, best.t), n_image_segments=len(frame.segments_px),
                             n_matched=pairs.n_matched, n_nearest=pairs.n_nearest,
                             image_segments=pairs.image_segments, model_segments=pairs.model_segments,
-                            timings={} if timings is None else timings, matched_view=int(best.hypothesis.view),
+                            timings=work.timings, matched_view=int(best.hypothesis.view),
                             symmetry_margin=margin, ambiguous=margin is not None and margin < p.pose.twin_margin,
                             twin_tie=tied,
                             shares=shares, size_pixels=size, model_length_pixels=length,
                             distance=centre_distance(self.graph, best))
-        estimate.confidence = calibration.confidence(estimate, p.pose.prior)
+        estimate.confidence = work.calibration.confidence(estimate, p.pose.prior)
         return estimate
 
-    def _likelier_than_small(self, best: Candidate, finalists: list[Candidate], frame: Frame, p: EstimatorParams,
-                             search: TemplateSearch, calibration) -> Candidate:
+    def _likelier_than_small(self, work: ImageWork, best: Candidate, finalists: list[Candidate],
+                             frame: Frame) -> Candidate:
         """``best``, or where it is smaller than the template search's sizes (a pose the
         ``small`` generator may have brought) the best finalist of the search's sizes if that
         is more probably right: the score of a pose a third the size of another is not
         comparable with it (the small pose has few edge pixels to miss; on the bench such
         poses on clutter props outscored the part at 0.56-0.72), while the confidence was
         fitted with the pose's size among its features and ranked the part first there."""
-        smallest = search.sizes(frame, p.search)[0] / np.sqrt(p.search.size_step)
+        smallest = work.search.sizes(frame, work.p.search)[0] / np.sqrt(work.p.search.size_step)
 
         def small(c: Candidate) -> bool:
             return (c.R @ self.graph.model_center + c.t)[2] > 0 and \
@@ -337,8 +360,7 @@ class Estimator:
         if not small(best) or not regular:
             return best
         other = max(regular, key=lambda c: c.score)
-        likelier = self._described(other, frame, p, calibration).confidence > \
-            self._described(best, frame, p, calibration).confidence
+        likelier = self._described(work, other, frame).confidence > self._described(work, best, frame).confidence
         return other if likelier else best
 
     def part_frame(self, image: np.ndarray, camera: Camera) -> Frame:
@@ -362,23 +384,21 @@ class Estimator:
         """The hypotheses of ``search.generators`` on one image's edges, each refined and
         scored: what ``estimate`` hands to the view climb (for benches of the generators);
         the seconds of each stage are added to ``timings`` if given."""
-        p = self._params
-        return self._candidates(frame, region_groups(frame, p.matching), p, self._hypotheses, self._search,
-                                self._pool, {} if timings is None else timings, time.perf_counter(), {},
-                                TimeBudget())[0]
+        work = self._image_work(timings=timings)
+        return self._candidates(work, frame, region_groups(frame, work.p.matching), {})[0]
 
-    def _candidates(self, frame: Frame, groups: list, p: EstimatorParams, hypotheses: TetradHypotheses,
-                    search: TemplateSearch | None, pool: WorkerPool, timings: dict, clock: float,
-                    climbs: dict, budget: TimeBudget) -> tuple[list[Candidate], Candidate | None]:
+    def _candidates(self, work: ImageWork, frame: Frame, groups: list,
+                    climbs: dict) -> tuple[list[Candidate], Candidate | None]:
         """Refined, scored hypotheses of the chosen generators (module doc, steps 2-4), and the
         best of them climbed and polished if a generator was skipped for it (else None);
         ``climbs`` keeps the image's view climbs for the later stages and the finalists; a
-        generator after the first starts only while ``budget`` allows."""
+        generator after the first starts only while the image's time budget allows."""
+        p, search, pool = work.p, work.search, work.pool
         candidates: list[Candidate] = []
         coarse = None  # the template search's, once per image for every stage that needs it
         for n, stage in enumerate(p.search.stages):
             candidates = in_working_range(candidates, self.graph, p.pose)
-            if n and not budget.allows(*p.search.stages[n:]):
+            if n and not work.budget.allows(*p.search.stages[n:]):
                 break
             if n and candidates:
                 # the climbed, polished pose decides, not the raw candidates: on the bench a
@@ -386,40 +406,38 @@ class Estimator:
                 # ones stayed below 0.85 (docs/DECISIONS.md); kept as a start for the final climb
                 settled = in_working_range([self._refiner.best(candidates, frame, p.pose, pool, climbs)], self.graph,
                                            p.pose)
-                clock = _lap(timings, "refinement", clock)
+                work.lap("refinement")
                 if settled and settled[0].score >= p.search.enough_score:
                     return settled, settled[0]
                 candidates = candidates + settled
             if stage in ("search", "seeded", "windows") and coarse is None:
                 coarse = search.coarse(frame, p.search, pool, distances=p.pose.distances)
-                clock = _lap(timings, "search", clock)
+                work.lap("search")
             if stage == "search":
                 # not aligned on edge pixels: the search's many coarse templates, aligned, fit
                 # clutter and occluders as well as a 30 % hidden part (docs/results/refinement.md)
                 candidates += self._refiner.verify(search.best(coarse, frame, p.search.hypotheses, p.search), frame,
                                                    p.pose, pool)
-                clock = _lap(timings, "refinement", clock)
+                work.lap("refinement")
             elif stage == "windows":
                 windows = [segments_within(frame, center, p.search.seed_window * size / 2)
                            for center, size in search.places(coarse, p.search.windows)]
-                candidates, clock = self._tetrads(frame, [windows], p, hypotheses, pool, timings, clock, candidates)
+                candidates = self._tetrads(work, frame, [windows], candidates)
             elif stage in ("seeded", "small"):
                 seeds = search.best(coarse, frame, p.search.seeds, p.search) if stage == "seeded" else \
                     small_part_seeds(frame, groups, p.search, search, p.pose.min_size_pixels, p.pose.distances, pool)
-                clock = _lap(timings, "search", clock)
-                matched = hypotheses.at_seeds(seeds, frame, p.search.seed_window, p.matching, pool)
-                clock = _lap(timings, "matching", clock)
-                candidates += self._realigned(self._refiner.verify(best_covered(matched, p.search.hypotheses), frame,
-                                                                   p.pose, pool), frame, p, pool)
-                clock = _lap(timings, "refinement", clock)
+                work.lap("search")
+                matched = work.hypotheses.at_seeds(seeds, frame, p.search.seed_window, p.matching, pool)
+                work.lap("matching")
+                verified = self._refiner.verify(best_covered(matched, p.search.hypotheses), frame, p.pose, pool)
+                candidates += self._realigned(work, frame, verified)
+                work.lap("refinement")
             else:
-                candidates, clock = self._tetrads(frame, [groups[:1], groups[1:]], p, hypotheses, pool, timings,
-                                                  clock, candidates)
+                candidates = self._tetrads(work, frame, [groups[:1], groups[1:]], candidates)
         return in_working_range(candidates, self.graph, p.pose), None
 
-    def _tetrads(self, frame: Frame, batches: list[list[np.ndarray]], p: EstimatorParams,
-                 hypotheses: TetradHypotheses, pool: WorkerPool, timings: dict, clock: float,
-                 candidates: list[Candidate]):
+    def _tetrads(self, work: ImageWork, frame: Frame, batches: list[list[np.ndarray]],
+                 candidates: list[Candidate]) -> list[Candidate]:
         """``candidates`` with the tetrad generator's on batches of regions (segment indices),
         batch by batch until a pose is clear: for the whole image, then its clusters, a clear
         pose in the whole image means the clusters (pieces of the same part, or the part
@@ -428,41 +446,40 @@ class Estimator:
         verified on the lines: among clutter the whole image's hypotheses score low while a
         cluster's hold the part (the demo's images: 0.06-0.47 against 0.83-0.97), and aligning
         the first batch would be wasted."""
+        p, pool = work.p, work.pool
         first = len(candidates)
         for batch in batches:
             if not batch or any(c.score >= CLEAR_SCORE for c in in_working_range(candidates, self.graph, p.pose)):
                 break
-            jobs = hypotheses.shortlist_groups(frame, batch, p.matching, pool)
-            clock = _lap(timings, "prefilter", clock)
-            matched = hypotheses.match(jobs, p.matching, pool)
-            clock = _lap(timings, "matching", clock)
+            jobs = work.hypotheses.shortlist_groups(frame, batch, p.matching, pool)
+            work.lap("prefilter")
+            matched = work.hypotheses.match(jobs, p.matching, pool)
+            work.lap("matching")
             candidates = candidates + self._refiner.verify(best_per_region(matched, p.matching.hypotheses), frame,
                                                            p.pose, pool)
-            clock = _lap(timings, "refinement", clock)
-        candidates = candidates[:first] + self._realigned(candidates[first:], frame, p, pool)
-        clock = _lap(timings, "refinement", clock)
-        return candidates, clock
+            work.lap("refinement")
+        candidates = candidates[:first] + self._realigned(work, frame, candidates[first:])
+        work.lap("refinement")
+        return candidates
 
-    def _realigned(self, verified: list[Candidate], frame: Frame, p: EstimatorParams,
-                   pool: WorkerPool) -> list[Candidate]:
+    def _realigned(self, work: ImageWork, frame: Frame, verified: list[Candidate]) -> list[Candidate]:
         """One stage's verified hypotheses, also aligned on edge pixels (``PoseRefiner.realign``)
         unless one already scores ``search.enough_score`` on the lines: the starts the
         alignment rescues come from stages whose line ends all score low, and on the tuning
         images no stage above it owed a success to it (docs/results/refinement.md)."""
-        if not verified or max(c.score for c in verified) >= p.search.enough_score:
+        if not verified or max(c.score for c in verified) >= work.p.search.enough_score:
             return verified
-        return self._refiner.realign(verified, frame, p.pose, pool)
+        return self._refiner.realign(verified, frame, work.p.pose, work.pool)
 
-    def _paper_estimate(self, groups: list, frame: Frame, p: EstimatorParams, hypotheses: TetradHypotheses, pool,
-                        not_found: Estimate, clock: float) -> Estimate:
+    def _paper_estimate(self, work: ImageWork, frame: Frame, groups: list, not_found: Estimate) -> Estimate:
         """The best-covered hypothesis of all regions at once, its view as the pose."""
-        g, timings = self.graph, not_found.timings
+        g, p = self.graph, work.p
         regions = [r for r in (normalised_region(indices, frame, p.matching) for indices in groups) if r is not None]
-        jobs = hypotheses.shortlist(regions, p.matching, pool)
-        clock = _lap(timings, "prefilter", clock)
-        matched = hypotheses.match(jobs, p.matching, pool)
-        _lap(timings, "matching", clock)
-        timings["total"] = sum(timings.values())
+        jobs = work.hypotheses.shortlist(regions, p.matching, work.pool)
+        work.lap("prefilter")
+        matched = work.hypotheses.match(jobs, p.matching, work.pool)
+        work.lap("matching")
+        work.timings["total"] = sum(work.timings.values())
         if not matched:
             return not_found
         best = max(matched, key=lambda h: h.coverage)
@@ -472,8 +489,7 @@ class Estimator:
         return Estimate(found=True, R=R, t=t, score=best.coverage, error_ratio=pairs.error_ratio,
                         view_index=g.nearest_view(R, t), n_image_segments=not_found.n_image_segments,
                         n_matched=pairs.n_matched, n_nearest=pairs.n_nearest, image_segments=pairs.image_segments,
-                        model_segments=pairs.model_segments, timings=timings, matched_view=best.view)
-
+                        model_segments=pairs.model_segments, timings=work.timings, matched_view=best.view)
 
 def is_found(estimate: Estimate, p: PoseParams) -> bool:
     """The found rule: the confidence decides (docs/results/confidence.md), above a floor on
@@ -507,9 +523,3 @@ def template_search(graph: AspectGraph, p: SearchParams) -> TemplateSearch | Non
     generator alone then starts without deriving templates and warming the search's kernel."""
     return None if p.stages == ("tetrad",) else TemplateSearch(graph, p)
 
-
-def _lap(timings: dict, name: str, start: float) -> float:
-    """Add the time since ``start`` to stage ``name`` (a stage may run more than once)."""
-    now = time.perf_counter()
-    timings[name] = timings.get(name, 0.0) + now - start
-    return now
