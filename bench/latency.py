@@ -207,6 +207,19 @@ def load_average() -> str:
     return "\nload average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
+def print_table(header: list[str], paths: dict, scenes: dict, rows_of) -> None:
+    """One table: the load average, the header, and ``rows_of(graph, scene, images)``'s rows
+    (the columns after views and scene) for every graph and scene."""
+    print(load_average())
+    print("\n| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for path in paths.values():
+        graph = AspectGraph.load(path)
+        for name, (scene, images) in scenes.items():
+            for row in rows_of(graph, scene, images):
+                print(f"| {graph.n_views} | {name} {row}", flush=True)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--views", type=int, nargs="*", default=[500, 2500, 10000])
@@ -236,24 +249,13 @@ def main(argv=None) -> int:
         return 0
 
     if "workers" in args.tables:
-        print(load_average())
-        print("\n| views | scene | workers | " + " | ".join(f"{s} ms" for s in STAGES[:-1])
-              + " | ms/image | images/s | speed-up | same poses | CPU ms/image |")
-        print("|" + "---|" * 13)
-        for views, path in paths.items():
-            graph = AspectGraph.load(path)
-            for name, (scene, images) in scenes.items():
-                for row in workers_table(graph, scene, images, args.workers, args.rounds):
-                    print(f"| {graph.n_views} | {name} {row}", flush=True)
+        print_table(["views", "scene", "workers", *(f"{s} ms" for s in STAGES[:-1]), "ms/image", "images/s",
+                     "speed-up", "same poses", "CPU ms/image"], paths, scenes,
+                    lambda graph, scene, images: workers_table(graph, scene, images, args.workers, args.rounds))
     if "parts" in args.tables:
-        print(load_average())
-        print("\n| views | scene | parts | edges | workers each | ms/image | part-images/s | time / 1 part |")
-        print("|" + "---|" * 8)
-        for views, path in paths.items():
-            graph = AspectGraph.load(path)
-            for name, (scene, images) in scenes.items():
-                for row in parts_table(graph, scene, images, args.parts, args.part_workers, args.rounds):
-                    print(f"| {graph.n_views} | {name} {row}", flush=True)
+        print_table(["views", "scene", "parts", "edges", "workers each", "ms/image", "part-images/s", "time / 1 part"],
+                    paths, scenes, lambda graph, scene, images: parts_table(graph, scene, images, args.parts,
+                                                                            args.part_workers, args.rounds))
     if "start" in args.tables:
         print(load_average())
         print("\n| views | scene | workers | setup s | first image ms | steady ms | first / steady | "
@@ -268,14 +270,9 @@ def main(argv=None) -> int:
                                        capture_output=True, text=True, check=True)
                 print(f"| {views} | {name} | {args.part_workers} {child.stdout.strip()}", flush=True)
     if "budgets" in args.tables:
-        print(load_average())
-        print("\n| views | scene | budget ms | ms/image | 90 % | most | a step left out | pose as without a budget |")
-        print("|" + "---|" * 8)
-        for views, path in paths.items():
-            graph = AspectGraph.load(path)
-            for name, (scene, images) in scenes.items():
-                for row in budgets_table(graph, scene, images, args.budgets, args.rounds):
-                    print(f"| {graph.n_views} | {name} {row}", flush=True)
+        print_table(["views", "scene", "budget ms", "ms/image", "90 %", "most", "a step left out",
+                     "pose as without a budget"], paths, scenes,
+                    lambda graph, scene, images: budgets_table(graph, scene, images, args.budgets, args.rounds))
     print(load_average())
     return 0
 
