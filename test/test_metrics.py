@@ -78,3 +78,15 @@ def test_summaries_for_people_count_images():
     lines = format_summary(summarise(errors)).splitlines()
     assert "found" in lines[1] and lines[1].endswith("4 of 8 (50 %)")
     assert "success" in lines[2] and lines[2].endswith("3 of 8 (38 %)")
+
+
+def test_a_prediction_names_the_steps_a_time_budget_left_out_and_only_then():
+    from brepose_ros.evaluation.metrics import prediction_entry
+    from brepose_ros.online.estimator import Estimate
+
+    hurried = Estimate(True, np.eye(3), np.array([0.0, 0.0, 0.5]), score=0.8, error_ratio=0.2, view_index=3,
+                       n_image_segments=12, n_matched=8, n_nearest=6, skipped=("seeded", "larger"))
+    entry = prediction_entry("images/000000.png", hurried)
+    assert entry["skipped"] == ["seeded", "larger"] and entry["t"] == [0.0, 0.0, 0.5]
+    hurried.skipped = ()
+    assert "skipped" not in prediction_entry("images/000000.png", hurried)

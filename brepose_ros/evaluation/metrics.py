@@ -166,7 +166,7 @@ def write_predictions(path: str | Path, predictions: list[dict]) -> None:
 def prediction_entry(image: str, estimate) -> dict:
     """One entry of the predictions JSON; for a part with near symmetries also the pose's
     ``symmetry_margin`` over its twins, whether the image left it ``ambiguous`` and whether a
-    twin ties with it (``twin_tie``)."""
+    twin ties with it (``twin_tie``); where a time budget left steps out, which (``skipped``)."""
     found = estimate.found
     entry = {"image": image,
              "R": np.asarray(estimate.R).ravel().tolist() if found else None,
@@ -176,6 +176,8 @@ def prediction_entry(image: str, estimate) -> dict:
     if estimate.symmetry_margin is not None:
         entry.update(symmetry_margin=float(estimate.symmetry_margin), ambiguous=bool(estimate.ambiguous),
                      twin_tie=bool(estimate.twin_tie))
+    if estimate.skipped:
+        entry["skipped"] = list(estimate.skipped)
     return entry
 
 
