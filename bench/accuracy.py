@@ -208,6 +208,8 @@ def image_record(result) -> dict:
               "ms": 1000.0 * result.estimate.timings.get("total", 0.0),
               # the twin check's margin (None: the part has no twin), which the confidence weighs
               "symmetry_margin": result.estimate.symmetry_margin}
+    if result.estimate.skipped:  # the steps search.time_budget_ms left out
+        record["skipped"] = list(result.estimate.skipped)
     return record | (e.to_dict() if e is not None else {})
 
 
