@@ -75,7 +75,7 @@ from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_scores, pose_shares, 
 from .search import TemplateSearch
 from .small import small_part_seeds
 from .symmetry import check_rivals, check_twins
-from .time_budget import StepCosts, TimeBudget
+from .time_budget import LARGER_CHECK, StepCosts, TimeBudget
 from .workers import WorkerPool, keep_freed_memory, resolve_workers
 
 
@@ -135,7 +135,6 @@ class Estimate:
     skipped: tuple[str, ...] = ()
 
 
-
 @dataclass
 class ImageWork:
     """One image's estimate as its stages share it: the estimator's parts as they were when it
@@ -156,6 +155,7 @@ class ImageWork:
         now = time.perf_counter()
         self.timings[stage] = self.timings.get(stage, 0.0) + now - self.clock
         self.clock = now
+
 
 class Estimator:
     """Finds one part (one aspect graph) in images, one image at a time: ``estimate`` must
@@ -250,7 +250,7 @@ class Estimator:
             return not_found
         if regions is not None:
             best = self._likelier_in_places(work, best, image, camera, regions, frame)
-        if larger_check_applies(best, p, work.search) and work.budget.allows("larger"):
+        if larger_check_applies(best, p, work.search) and work.budget.allows(LARGER_CHECK):
             best = larger_pose(best, self.graph, frame, p, work.search, work.hypotheses, self._refiner, work.pool)
             work.budget.close()
             work.lap("larger")

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 #: the steps that always run after the generators, whose time the budget keeps free
 FINISH = "finish"
+#: the larger-pose check, an optional step after the generators (not part of the finish)
+LARGER_CHECK = "larger"
 
 #: how much of the gap a shorter image closes on a step's remembered cost
 EASE = 0.2
@@ -87,5 +89,5 @@ class TimeBudget:
         """The image is done: its finish timed, every step's time handed to the costs."""
         now = self.close()
         if self._generators_done is not None:
-            self.spent[FINISH] = now - self._generators_done - self.spent.get("larger", 0.0)
+            self.spent[FINISH] = now - self._generators_done - self.spent.get(LARGER_CHECK, 0.0)
         self.costs.remember(self.spent)
