@@ -3,7 +3,7 @@ the number of views, on clean and occluded scenes; start-up and first-image time
 
     python bench/latency.py [--views 500 2500 10000] [--workers 1 2 4] [--parts 1 2 4]
                             [--scenes clean occluded] [--n 6] [--rounds 2] [--part sharp_bracket]
-                            [--look plain|varied] [--tables budgets --budgets 0 100 250]
+                            [--look plain|varied] [--tables budgets --budgets 0 100 250] [--params FILE]
 
 Four tables, each measured within one run with the settings alternating image by image
 (the order turns every round), so that a machine busy with other jobs slows every setting
@@ -64,8 +64,8 @@ STAGES = ("edges", "prefilter", "matching", "refinement", "search", "total")
 SCENES = {"clean": "clean", "occluded": "occl30+clutter"}
 
 
-def with_workers(workers: int) -> EstimatorParams:
-    return EstimatorParams().with_flat({"matching.workers": workers})
+def with_workers(workers: int, base: EstimatorParams | None = None) -> EstimatorParams:
+    return (base or EstimatorParams()).with_flat({"matching.workers": workers})
 
 
 def pose_key(estimate) -> tuple:
@@ -90,8 +90,9 @@ def summary(seconds: list[float]) -> tuple[float, float]:
     return 1000.0 * float(np.median(seconds)), len(seconds) / float(np.sum(seconds))
 
 
-def workers_table(graph: AspectGraph, scene, images, workers: list[int], rounds: int) -> list[str]:
-    estimators = {w: Estimator(graph, with_workers(w)) for w in workers}
+def workers_table(graph: AspectGraph, scene, images, workers: list[int], rounds: int,
+                  base: EstimatorParams) -> list[str]:
+    estimators = {w: Estimator(graph, with_workers(w, base)) for w in workers}
     for e in estimators.values():
         e.estimate(images[0], scene.camera)  # each pool's first image is not the steady state
 
@@ -117,8 +118,9 @@ def workers_table(graph: AspectGraph, scene, images, workers: list[int], rounds:
     return rows
 
 
-def parts_table(graph: AspectGraph, scene, images, parts: list[int], part_workers: int, rounds: int) -> list[str]:
-    estimators = [Estimator(graph, with_workers(part_workers)) for _ in range(max(parts))]
+def parts_table(graph: AspectGraph, scene, images, parts: list[int], part_workers: int, rounds: int,
+                base: EstimatorParams) -> list[str]:
+    estimators = [Estimator(graph, with_workers(part_workers, base)) for _ in range(max(parts))]
     # (parts, edges shared): more than one part finds the image's edges once for all, as the
     # node does (Estimator.detect), or each its own, the node before it shared them
     settings = [(p, shared) for p in parts for shared in ((True, False) if p > 1 else (True,))]
@@ -148,8 +150,9 @@ def parts_table(graph: AspectGraph, scene, images, parts: list[int], part_worker
     return rows
 
 
-def budgets_table(graph: AspectGraph, scene, images, budgets: list[float], rounds: int) -> list[str]:
-    estimators = {b: Estimator(graph, EstimatorParams().with_flat({"search.time_budget_ms": b})) for b in budgets}
+def budgets_table(graph: AspectGraph, scene, images, budgets: list[float], rounds: int,
+                  base: EstimatorParams) -> list[str]:
+    estimators = {b: Estimator(graph, base.with_flat({"search.time_budget_ms": b})) for b in budgets}
     for e in estimators.values():
         e.estimate(images[0], scene.camera)  # each step's cost timed once before the budget judges it
 
@@ -172,9 +175,9 @@ def budgets_table(graph: AspectGraph, scene, images, budgets: list[float], round
     return rows
 
 
-def start_row(path: Path, scene, images, workers: int) -> str:
+def start_row(path: Path, scene, images, workers: int, base: EstimatorParams) -> str:
     start = time.perf_counter()
-    estimator = Estimator(AspectGraph.load(path), with_workers(workers))
+    estimator = Estimator(AspectGraph.load(path), with_workers(workers, base))
     setup = time.perf_counter() - start
     seconds = []
     for image in images:
@@ -232,11 +235,13 @@ def main(argv=None) -> int:
     parser.add_argument("--budgets", type=float, nargs="*", default=[0, 100, 250],
                         help="search.time_budget_ms settings of the budgets table (ms; 0: none, put first)")
     parser.add_argument("--look", default="plain", choices=LOOKS, help="scene look (default plain)")
+    parser.add_argument("--params", type=Path, help="estimator YAML every table starts from (default: the defaults)")
     parser.add_argument("--n", type=int, default=6, help="images per scene")
     parser.add_argument("--rounds", type=int, default=2, help="passes over the images, the order turned each time")
     parser.add_argument("--part", default="sharp_bracket")
     parser.add_argument("--start-only", nargs=2, metavar=("VIEWS", "SCENE"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    base = EstimatorParams.load(args.params) if args.params else EstimatorParams()
     cache = REPO / "data" / "bench"
     cache.mkdir(parents=True, exist_ok=True)
     step = step_file(args.part, cache)
@@ -245,17 +250,17 @@ def main(argv=None) -> int:
              for views in args.views}
     if args.start_only:  # the child process of the start table
         views, name = args.start_only
-        print(start_row(paths[int(views)], *scenes[name], args.part_workers))
+        print(start_row(paths[int(views)], *scenes[name], args.part_workers, base))
         return 0
 
     if "workers" in args.tables:
         print_table(["views", "scene", "workers", *(f"{s} ms" for s in STAGES[:-1]), "ms/image", "images/s",
                      "speed-up", "same poses", "CPU ms/image"], paths, scenes,
-                    lambda graph, scene, images: workers_table(graph, scene, images, args.workers, args.rounds))
+                    lambda graph, scene, images: workers_table(graph, scene, images, args.workers, args.rounds, base))
     if "parts" in args.tables:
         print_table(["views", "scene", "parts", "edges", "workers each", "ms/image", "part-images/s", "time / 1 part"],
                     paths, scenes, lambda graph, scene, images: parts_table(graph, scene, images, args.parts,
-                                                                            args.part_workers, args.rounds))
+                                                                            args.part_workers, args.rounds, base))
     if "start" in args.tables:
         print(load_average())
         print("\n| views | scene | workers | setup s | first image ms | steady ms | first / steady | "
@@ -266,13 +271,13 @@ def main(argv=None) -> int:
                 child = subprocess.run([sys.executable, __file__, "--start-only", str(views), name,
                                         "--views", str(views), "--scenes", name, "--n", str(args.n),
                                         "--part", args.part, "--part-workers", str(args.part_workers),
-                                        "--look", args.look],
+                                        "--look", args.look, *(["--params", str(args.params)] if args.params else [])],
                                        capture_output=True, text=True, check=True)
                 print(f"| {views} | {name} | {args.part_workers} {child.stdout.strip()}", flush=True)
     if "budgets" in args.tables:
         print_table(["views", "scene", "budget ms", "ms/image", "90 %", "most", "a step left out",
                      "pose as without a budget"], paths, scenes,
-                    lambda graph, scene, images: budgets_table(graph, scene, images, args.budgets, args.rounds))
+                    lambda graph, scene, images: budgets_table(graph, scene, images, args.budgets, args.rounds, base))
     print(load_average())
     return 0
 
