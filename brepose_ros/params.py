@@ -270,8 +270,11 @@ class SearchParams(Ranged):
         "'search+tetrad'. A "
         "generator after the first runs only while the best pose so far, climbed and polished, scores below "
         "search.enough_score. Default: "
-        "'tetrad+windows+seeded+small' (docs/results/search.md: clutter 0.21 -> 0.46 tune, 0.04 -> 0.10 leave-out, "
-        "at about 8x the time; 'small': docs/results/small.md)", "tetrad+windows+seeded+small")
+        "'tetrad+seeded+windows+small' (docs/results/search.md: clutter 0.21 -> 0.46 tune, 0.04 -> 0.10 leave-out, "
+        "at about 8x the time; 'small': docs/results/small.md; the seeded generator before the windows since "
+        "session 26: on 1,920 fresh bench images 10 righted and 4 lost, a few per cent faster, and under "
+        "search.time_budget_ms the generator that finds most is the one that runs; docs/results/latency.md)",
+        "tetrad+seeded+windows+small")
     coarse_factor: int = doc("the search's coarse grid: one cell per this many pixels", 4, 1, 16)
     spread: int = doc("cells a template point may miss its edge by on the coarse grid", 1, 0, 4)
     template_points: int = doc("points per template, sampled evenly along a view's edges", 48, 8, 256)
@@ -303,10 +306,12 @@ class SearchParams(Ranged):
         "first, a colour place or the larger check starts only if what it took on this estimator's recent images "
         "still fits before it with time for the last steps (the finalists' climb, the twin check), which always "
         "run, as does the first generator; the estimate's 'skipped' names what did not start. A step not yet "
-        "timed counts as free, so an estimator's first image runs on until the deadline has passed. Put the "
-        "generator that finds most first: on 480 bench images (one process, two workers) "
-        "'seeded+windows+tetrad+small' at 500 ms kept 216 of the default's 226 right poses, 90 % of the images "
-        "within 497 ms against 762; the default order at 250 ms 156 (docs/results/latency.md, session 26)",
+        "timed counts as free, so an estimator's first image runs on until the deadline has passed. The "
+        "generators that find most should come first: at 500 ms the default order kept 213 and 167 of the 226 "
+        "and 172 right poses of bench images 64-79 and 80-95 (one process, two workers), 90 % of the images "
+        "within 475-492 ms against 713-762; 'seeded+windows+tetrad+small' 216 and 172, at 61 ms instead of 22 "
+        "for a plain clean image; the order before session 26 ('tetrad+windows+seeded+small') at 250 ms only "
+        "156 of 226 (docs/results/latency.md, session 26)",
         0.0, 0.0, 60000.0)
 
     def __post_init__(self):
