@@ -23,6 +23,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.compare_runs import counts  # noqa: E402
 from bench.plot_accuracy import load_runs  # noqa: E402
 from brepose_ros.evaluation.figures import pyplot, save_figure  # noqa: E402
 
@@ -31,13 +32,14 @@ def operating_point(rows: list[dict]) -> dict:
     """Right (found, success up to symmetry) per condition and overall, found but wrong, and
     the ms per image of all the run's images."""
     images = [(row["condition"], image) for row in rows for image in row["images"]]
-    right = [bool(i.get("found")) and bool(i.get("success_sym")) for _, i in images]
+    tallies = [counts(i) for _, i in images]  # (right, right up to symmetry, found, found but wrong)
+    right = [bool(sym and found) for _, sym, found, _ in tallies]
     conditions = dict.fromkeys(c for c, _ in images)
     ms = np.array([i["ms"] for _, i in images])
     return {"images": len(images), "right": sum(right),
             "by_condition": {c: sum(r for (cc, _), r in zip(images, right) if cc == c) for c in conditions},
             "per_condition": {c: sum(cc == c for cc, _ in images) for c in conditions},
-            "wrong": sum(bool(i.get("found")) and not r for (_, i), r in zip(images, right)),
+            "wrong": sum(wrong for *_, wrong in tallies),
             "median_ms": float(np.median(ms)), "p90_ms": float(np.percentile(ms, 90))}
 
 
