@@ -1,6 +1,7 @@
 """Real photographs: every BOP19 target in the 25 LM-O frames of ../shared/data/real/lmo_test_000002.
 
     python bench/real_lmo.py [--step-deg 5] [--objects 1 5 ...] [--params FILE.yaml] [--crop] [--overlays 4]
+    python bench/real_lmo.py --report data/bench/real_lmo/results_LABEL.json     # the tables of a saved run
 
 Each of the 8 objects' scanned PLY meshes (mm) is compiled into an aspect graph (cached under
 data/bench/real_lmo/graphs/, git-ignored), then every target of test_targets_bop19.json whose
@@ -241,7 +242,15 @@ def main(argv=None) -> int:
     parser.add_argument("--render", action="store_true", help="renderings of the true poses instead of the photos")
     parser.add_argument("--known-range", type=float, metavar="RATIO",
                         help="known working distance: the frame's median object distance / and x RATIO (> 1)")
+    parser.add_argument("--report", type=Path, metavar="RESULTS",
+                        help="print the tables of a saved results file (data/bench/real_lmo/results*.json) "
+                             "instead of running")
     args = parser.parse_args(argv)
+    if args.report:
+        rows = json.loads(args.report.read_text())
+        args.objects = [obj for obj in NAMES if any(r["obj"] == obj for r in rows)]
+        report(rows, args, EstimatorParams.load(args.params) if args.params else EstimatorParams())
+        return 0
     if args.known_range is not None and args.known_range <= 1:
         parser.error("--known-range must be above 1")
     if not LMO.is_dir():
@@ -385,6 +394,7 @@ def report(rows: list[dict], args, params: EstimatorParams) -> None:
                  f"{100 * np.mean([r['near_px'][k] < PROJECTION_PX for r in mine]):.1f} %"
                  for k in range(len(NEAR_STAGES))]
         print(f"| {NAMES[obj] if obj else '**all**'} | " + " | ".join(cells) + " |")
+    print_ceilings(rows, args.objects)
     per_image = [sum(r["seconds"] for r in rows if r["frame"] == f) for f in sorted({r["frame"] for r in rows})]
     print(f"\ntime per image (all its targets): median {np.median(per_image):.1f} s; "
           f"per estimate: median {np.median([r['seconds'] for r in rows]):.2f} s")
@@ -393,6 +403,35 @@ def report(rows: list[dict], args, params: EstimatorParams) -> None:
         f"{name} {np.median([r['timings'].get(name, 0.0) for r in rows]):.2f}" for name in stages))
     print("published RGB-only figures on the whole LM-O test set: " +
           "; ".join(f"{name} {value}" for name, value in PUBLISHED))
+
+
+def print_ceilings(rows: list[dict], objects) -> None:
+    """What a perfect search, and a perfect search and choice, would give on these edges.
+
+    A perfect search puts the near-truth start, refined and polished (``near``), among the
+    candidates: the score then keeps it where it outscores the estimate. A perfect choice
+    keeps it wherever it is right as well. Neither can exceed what the refinement makes of a
+    start beside the truth, so the second is the ceiling of the edge score's evidence.
+    """
+    def searched(r):
+        return r["correct"] or (r["near_correct"] and r["near_score"] > r["score"])
+
+    def chosen(r):
+        return r["correct"] or r["near_correct"]
+
+    def share(selected, rule):
+        return f"{100 * np.mean([rule(r) for r in selected]):.1f}" if selected else "-"
+
+    print("\nCeilings, ADD(-S) recall % (all / visible >= 0.8 / < 0.8): today | a perfect search (the near-truth "
+          "start among the candidates, the score choosing) | a perfect search and choice")
+    print("| object | today | perfect search | perfect search and choice |")
+    print("|---|---|---|---|")
+    for obj in [*objects, None]:
+        mine = [r for r in rows if obj is None or r["obj"] == obj]
+        well = [r for r in mine if r["visible"] >= WELL_VISIBLE]
+        splits = (mine, well, [r for r in mine if r["visible"] < WELL_VISIBLE])
+        cells = [" / ".join(share(s, rule) for s in splits) for rule in (lambda r: r["correct"], searched, chosen)]
+        print(f"| {NAMES[obj] if obj else '**all**'} | " + " | ".join(cells) + " |")
 
 
 def scene_meshes() -> dict[int, Mesh]:
