@@ -31,6 +31,11 @@ is), the final pose is the estimator's (finalists, rival and twin checks), and f
   (a wrong pose outscores it);
 - ``low``: the final pose is right but scores below ``pose.min_score``.
 
+Beside the losses, two ceilings per set and condition: the images a **perfect search** would
+get right (the refined truth among the candidates, the score choosing: right where the
+refined truth is right, found and outscores the final pose) and a **perfect search and
+choice** (right wherever the refined truth is right and found): what the score allows.
+
 Columns besides: ``depth x`` is the final pose's centre distance over the truth's (a wrong
 size when it is 10 % or more off 1), ``near climbed`` the best near candidate climbed and
 polished (its score, y if right), ``truth > final`` whether the refined truth outscores the
@@ -62,6 +67,8 @@ from brepose_ros.online.symmetry import check_twins  # noqa: E402
 from brepose_ros.online.workers import SERIAL  # noqa: E402
 
 LOSSES = ("ok", "wall", "depth", "coarse", "matching", "drift", "choice", "low")
+#: the ceilings tallied beside the losses (``ceilings``)
+CEILINGS = ("perfect search", "perfect search and choice")
 
 
 def refined_truth(estimator: Estimator, frame: Frame, entry) -> Candidate:
@@ -146,6 +153,15 @@ def diagnose(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> d
                 visible=getattr(entry, "visible_fraction", None))
 
 
+def ceilings(d: dict, min_score: float) -> tuple[bool, bool]:
+    """Would the image be right with a perfect search (the refined truth among the candidates,
+    the score choosing: kept where it outscores the final pose), and with a perfect search and
+    choice (kept wherever it is right and found)? What the score allows, whatever the search."""
+    truth_right = d["refined_ok"] and d["refined"] >= min_score
+    right = d["loss"] == "ok"
+    return right or (truth_right and d["refined"] > d["final"]), right or truth_right
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_scene_arguments(parser, n=8, parts=TUNING, conditions=["occl30+clutter"], start=True)
@@ -164,7 +180,9 @@ def main(argv=None) -> int:
         for condition in args.conditions:
             for _, entry, _, frame in cached_frames(cache, name, condition, params, args.start, args.n):
                 d = diagnose(estimator, frame, entry, model)
-                tally.setdefault((part_set(name), condition), Counter())[d["loss"]] += 1
+                counts = tally.setdefault((part_set(name), condition), Counter())
+                counts[d["loss"]] += 1
+                counts.update(k for k, held in zip(CEILINGS, ceilings(d, params.pose.min_score)) if held)
                 s = d["parts"]
                 print(f"| {name} | {condition} | {entry.image.split('/')[-1]} | {d['truth']:.2f} | "
                       f"{d['refined']:.2f} ({'y' if d['refined_ok'] else 'n'}) | "
@@ -175,10 +193,11 @@ def main(argv=None) -> int:
                       f"{d['final']:.2f} ({'y' if d['success'] else 'n'}) | {d['depth']:.2f} | "
                       f"{'y' if d['refined'] > d['final'] else 'n'} | {d['loss']} |", flush=True)
         estimator.close()
-    print("\n| set | condition | images | " + " | ".join(LOSSES) + " |")
-    print("|---|---|---|" + "---|" * len(LOSSES))
+    print("\n| set | condition | images | " + " | ".join(LOSSES + CEILINGS) + " |")
+    print("|---|---|---|" + "---|" * len(LOSSES + CEILINGS))
     for (s, c), counts in sorted(tally.items()):
-        print(f"| {s} | {c} | {sum(counts.values())} | " + " | ".join(str(counts[k]) for k in LOSSES) + " |")
+        print(f"| {s} | {c} | {sum(counts[k] for k in LOSSES)} | "
+              + " | ".join(str(counts[k]) for k in LOSSES + CEILINGS) + " |")
     return 0
 
 
