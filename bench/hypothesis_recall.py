@@ -43,8 +43,8 @@ from brepose_ros.geometry import rotation_angle_deg  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.image_edges import detect_edges  # noqa: E402
-from brepose_ros.online.larger import larger_check_applies, larger_pose  # noqa: E402
-from brepose_ros.online.symmetry import check_rivals, check_twins  # noqa: E402
+from brepose_ros.online.symmetry import check_twins  # noqa: E402
+from brepose_ros.online.workers import SERIAL  # noqa: E402
 from brepose_ros.params import GENERATORS, EstimatorParams  # noqa: E402
 from brepose_ros.scene_folder import load_scene  # noqa: E402
 
@@ -72,16 +72,11 @@ def near_truth(R, t, entry, graph) -> bool:
 
 def chosen_pose(estimator: Estimator, candidates: list, frame: Frame, p: EstimatorParams, rivals: bool = True):
     """The pose ``Estimator.estimate`` chooses among refined ``candidates`` before the twin
-    check (the best finalist, or a rival at its place that its distinguishing edges show, then
-    the larger-pose check where it applies); without ``rivals`` the best climbed pose,
-    polished, as before the rival check (main cb60954)."""
-    refiner = estimator._refiner
+    check (``Estimator.choose``); without ``rivals`` the best climbed pose, polished, as
+    before the rival check (main cb60954)."""
     if not rivals:
-        return refiner.best(candidates, frame, p.pose)
-    best = check_rivals(refiner.finalists(candidates, frame, p.pose), estimator.graph, frame, p.pose)
-    if larger_check_applies(best, p, estimator._search):
-        best = larger_pose(best, estimator.graph, frame, p, estimator._search, estimator._hypotheses, refiner)
-    return best
+        return estimator._refiner.best(candidates, frame, p.pose)
+    return estimator.choose(frame, candidates, p, SERIAL)
 
 
 def measure(estimator: Estimator, frame: Frame, entry, model: ModelPoints) -> dict:

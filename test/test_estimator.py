@@ -379,3 +379,26 @@ def test_the_first_images_compile_no_kernel_the_start_did_not_warm(bracket, tmp_
                          capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout.strip().splitlines()[-1] == "[]"
+
+
+@pytest.mark.slow
+def test_the_choice_replayed_on_the_candidates_is_the_estimate(bracket, estimator, tmp_path):
+    """``Estimator.choose`` on the refined candidates of ``candidates`` (what the benches replay
+    to classify where an image is lost) then the twin check give ``estimate``'s pose to the bit
+    on occluded images among clutter, where every stage of the choice runs."""
+    from brepose_ros.online.frame import Frame
+    from brepose_ros.online.scoring import scored_tolerances
+    from brepose_ros.online.symmetry import check_twins
+    from brepose_ros.online.workers import SERIAL
+
+    generate_scene(bracket[0], tmp_path / "scene", 3, seed=7, config=SceneConfig(occlusion=0.3, clutter=3))
+    scene, p = load_scene(tmp_path / "scene"), estimator.params
+    for entry in scene.entries:
+        image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
+        frame = Frame.detect(image, scene.camera, p.edges, SERIAL, scored_tolerances(estimator.graph, p.pose))[1]
+        chosen = check_twins(estimator.choose(frame, estimator.candidates(frame)), estimator.graph,
+                             estimator._refiner, frame, p.pose).pose
+        estimate = estimator.estimate(image, scene.camera)
+        assert chosen.score == estimate.score
+        if estimate.found:
+            assert np.array_equal(chosen.R, estimate.R) and np.array_equal(chosen.t, estimate.t)

@@ -286,19 +286,34 @@ class Estimator:
         """The frame's pose before the larger and twin checks (steps 3-4): the best finalist of
         the generators' candidates or a rival at its place, a small pose only where likelier
         than the search's sizes' best; None without a candidate."""
-        p = work.p
         climbs: dict = {}  # the view climbs made on this frame (``PoseRefiner._climbed``)
         candidates, best = self._candidates(work, frame, groups, climbs)
         work.budget.generators_done()
         if not candidates:
             return None
-        if best is None:
-            finalists = self._refiner.finalists(candidates, frame, p.pose, work.pool, climbs)
-            best = check_rivals(in_working_range(finalists, self.graph, p.pose) or finalists, self.graph, frame,
-                                p.pose)
-            if "small" in p.search.stages:
-                best = self._likelier_than_small(work, best, finalists, frame)
-            work.lap("refinement")
+        return best if best is not None else self._choice(work, frame, candidates, climbs)
+
+    def _choice(self, work: ImageWork, frame: Frame, candidates: list[Candidate], climbs: dict) -> Candidate:
+        """The best finalist of refined ``candidates``, or a rival at its place, a small pose only
+        where likelier than the search's sizes' best."""
+        p = work.p
+        finalists = self._refiner.finalists(candidates, frame, p.pose, work.pool, climbs)
+        best = check_rivals(in_working_range(finalists, self.graph, p.pose) or finalists, self.graph, frame, p.pose)
+        if "small" in p.search.stages:
+            best = self._likelier_than_small(work, best, finalists, frame)
+        work.lap("refinement")
+        return best
+
+    def choose(self, frame: Frame, candidates: list[Candidate], params: EstimatorParams | None = None,
+               pool: WorkerPool | None = None) -> Candidate:
+        """The pose ``estimate`` would take among refined ``candidates`` (from ``candidates``)
+        before the twin check: the choice, then the larger-pose check where it applies (for
+        benches that replay the choice on candidates they examined; ``params`` and ``pool``
+        as ``_image_work``'s)."""
+        work = self._image_work(params, pool)
+        best = self._choice(work, frame, candidates, {})
+        if larger_check_applies(best, work.p, work.search):
+            best = larger_pose(best, self.graph, frame, work.p, work.search, work.hypotheses, self._refiner, work.pool)
         return best
 
     def _likelier_in_places(self, work: ImageWork, best: Candidate, image: np.ndarray, camera: Camera,
