@@ -1,7 +1,7 @@
 """Real photographs: every BOP19 target in the 25 LM-O frames of ../shared/data/real/lmo_test_000002.
 
     python bench/real_lmo.py [--step-deg 5] [--objects 1 5 ...] [--params FILE.yaml] [--crop] [--overlays 4]
-    python bench/real_lmo.py --report data/bench/real_lmo/results_LABEL.json     # the tables of a saved run
+    python bench/real_lmo.py --report data/bench/real_lmo/results_LABEL.json [--appearance]  # a saved run's tables
 
 Each of the 8 objects' scanned PLY meshes (mm) is compiled into an aspect graph (cached under
 data/bench/real_lmo/graphs/, git-ignored), then every target of test_targets_bop19.json whose
@@ -120,6 +120,8 @@ CROP_GROWTH, CROP_MIN_PX = 2.0, 160
 NEAR_DEG, NEAR_SHIFT = 5.0, 0.02
 #: the refinement's stages in the near-truth probe: the hypothesis rounds, the view climb, the polish
 NEAR_STAGES = ("rounds", "climb", "polish")
+#: the bands inside and outside the silhouette compared by ``--appearance``, pixels
+APPEARANCE_BAND_PX = 4.0
 #: grey level behind the rendered objects (``--render``)
 RENDER_BACKGROUND = 40.0
 #: overlay colours (BGR): the true pose's edges, the estimate's when correct and when not
@@ -245,11 +247,16 @@ def main(argv=None) -> int:
     parser.add_argument("--report", type=Path, metavar="RESULTS",
                         help="print the tables of a saved results file (data/bench/real_lmo/results*.json) "
                              "instead of running")
+    parser.add_argument("--appearance", action="store_true",
+                        help="with --report: also the look at the truth against the wrong estimates "
+                             "(bench/silhouette_contrast.py's cues on the photos)")
     args = parser.parse_args(argv)
     if args.report:
         rows = json.loads(args.report.read_text())
         args.objects = [obj for obj in NAMES if any(r["obj"] == obj for r in rows)]
         report(rows, args, EstimatorParams.load(args.params) if args.params else EstimatorParams())
+        if args.appearance:
+            appearance_report(rows, args.objects)
         return 0
     if args.known_range is not None and args.known_range <= 1:
         parser.error("--known-range must be above 1")
@@ -442,6 +449,38 @@ def scene_meshes() -> dict[int, Mesh]:
         normals = trimesh.Trimesh(part.vertices, part.triangles, process=False).vertex_normals
         meshes[obj] = Mesh(part.vertices, part.triangles, normals)
     return meshes
+
+
+def appearance_report(rows: list[dict], objects) -> None:
+    """Where the estimate is wrong, does the look of the image over the part's silhouette prefer
+    the true pose, where the edge score does not? Per object: the wrong estimates, and how many
+    of them the truth beats by the shading fit (how much of the intensity over the silhouette the
+    mesh's normals explain under some light), by the contrast across the silhouette, and by the
+    edge score of the truth refined from beside it (``near score``)."""
+    from bench.silhouette_contrast import band_contrast, mesh_silhouette, quantised, shading_fit
+
+    camera, meshes = Camera.load(LMO / "camera.json"), scene_meshes()
+    targets = {(t.frame, t.obj): t for t in load_targets(LMO)}
+    wrong = [r for r in rows if not r["correct"] and r["R"] is not None]
+    beats = {}
+    for r in wrong:
+        image = cv2.imread(str(LMO / "rgb" / f"{r['frame']:06d}.png"), cv2.IMREAD_COLOR)
+        grey, (bins, n_bins) = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), quantised(image)
+        mesh, truth = meshes[r["obj"]], targets[(r["frame"], r["obj"])]
+        poses = [(np.array(r["R"]).reshape(3, 3), np.array(r["t"])), (truth.R, truth.t)]
+        shading = [shading_fit(grey, mesh, R, t, camera) for R, t in poses]
+        contrast = [band_contrast(bins, n_bins, mesh_silhouette(mesh, R, t, camera), APPEARANCE_BAND_PX)
+                    for R, t in poses]
+        beats[(r["obj"], r["frame"])] = (shading[1] > shading[0], contrast[1] > contrast[0],
+                                         r["near_score"] > r["score"])
+    print("\nWrong estimates the truth beats, by the shading fit / the contrast across the silhouette / "
+          "the edge score (near truth)")
+    print("| object | wrong | shading fit | contrast | edge score |")
+    print("|---|---|---|---|---|")
+    for obj in [*objects, None]:
+        mine = [b for (o, _), b in beats.items() if obj is None or o == obj]
+        print(f"| {NAMES[obj] if obj else '**all**'} | {len(mine)} | "
+              + " | ".join(str(sum(b[k] for b in mine)) for k in range(3)) + " |")
 
 
 def light_report(targets: list[Target], images: dict, meshes: dict, camera: Camera, params, objects) -> None:

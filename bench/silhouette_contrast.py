@@ -1,6 +1,7 @@
 """Does the look across a pose's silhouette tell right poses from wrong ones, where the edges
-do not? A region cue beside the edge score: at the right pose the part's outline separates
-two looks, while a shrunken copy lying on the part's own edges has part on both sides.
+do not? Region cues beside the edge score: at the right pose the part's outline separates
+two looks, while a shrunken copy lying on the part's own edges has part on both sides; and
+at the right pose the part's surface normals explain the shading over its silhouette.
 
     python bench/silhouette_contrast.py [--n 16] [--start 64] [--parts sharp_bracket ...]
                                         [--conditions clean clutter occl30+clutter] [--label NAME]
@@ -8,14 +9,19 @@ two looks, while a shrunken copy lying on the part's own edges has part on both 
 For each image of bench/accuracy.py's cached scenes, the estimator with default parameters;
 the refinement's finalists (``PoseRefiner.finalists``, captured), the final pose and the
 truth refined and polished (``occlusion_diagnosis.refined_truth``) are each scored by the
-edges (score, evidence in nats) and by the *contrast* of their silhouette: 1 - the
+edges (score, evidence in nats), by the *contrast* of their silhouette: 1 - the
 Bhattacharyya coefficient of the colour histograms of two bands along it, inside and outside
-(``band_contrast``). The silhouette is the mesh's rasterised at the pose (an oracle: the
-graph holds no mesh) or the convex hull of the pose's projected visible edges (what the
-estimator could draw). Prints, per cue: how often the refined truth beats a wrong found pose,
-how often a right found pose beats the wrong finalists of its image, and the AUC of right
-against wrong found poses. Records go to data/bench/results/silhouette_contrast_LABEL.json;
-``--from-records`` prints the tables again from such files.
+(``band_contrast``), and by the *shading fit* (``shading_fit``: how much of the grey level
+over the mesh's silhouette at the pose its normals explain under some distant light, the
+spherical harmonics up to order 2, outliers such as an occluder trimmed). The silhouette is
+the mesh's rasterised at the pose (an oracle: the graph holds no mesh) or the convex hull of
+the pose's projected visible edges (what the estimator could draw). Prints, per cue: how
+often the refined truth beats a wrong found pose, how often a right found pose beats the
+wrong finalists of its image, and the AUC of right against wrong found poses; then the cues
+combined with the estimator's confidence in a logistic model fitted with one part left out
+and applied to it (``combined_tables``). Records go to
+data/bench/results/silhouette_contrast_LABEL.json; ``--from-records`` prints the tables again
+from such files.
 """
 from __future__ import annotations
 
@@ -26,6 +32,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.optimize import minimize
 from scipy.stats import mannwhitneyu
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,11 +47,17 @@ from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E40
 from brepose_ros.offline.cad import Mesh, load_step, tessellate  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.scoring import pose_surprises, visible_rows  # noqa: E402
+from brepose_ros.synthetic.render import Placed, rasterize  # noqa: E402
 
 #: each band is this share of the part's projected size wide, and at least MIN_BAND_PX
 BAND_SHARE = 0.06
 MIN_BAND_PX = 3.0
-CUES = ("score", "nats", "contrast_mesh", "contrast_hull")
+CUES = ("score", "nats", "contrast_mesh", "contrast_hull", "shading_fit")
+#: the cue sets combined with the confidence (``combined_tables``)
+COMBINED = (("confidence",), ("confidence", "nats"), ("confidence", "contrast_mesh"), ("confidence", "shading_fit"),
+            ("confidence", "nats", "contrast_mesh", "shading_fit"))
+#: the share of the silhouette's pixels the shading fit may leave out as outliers (an occluder, a highlight)
+SHADING_TRIM = 0.3
 
 
 def mesh_silhouette(mesh: Mesh, R: np.ndarray, t: np.ndarray, camera: Camera) -> np.ndarray | None:
@@ -94,6 +107,36 @@ def band_contrast(bins: np.ndarray, n_bins: int, mask: np.ndarray | None, band_p
     return float(1.0 - np.sum(np.sqrt(h_in * h_out)))
 
 
+def sh_basis(normals: np.ndarray) -> np.ndarray:
+    """The 9 real spherical harmonics up to order 2 at unit normals (constants dropped): a
+    convex Lambertian surface's image under any distant light lies close to their span
+    (Basri and Jacobs, PAMI 2003)."""
+    x, y, z = normals.T
+    return np.stack([np.ones_like(x), x, y, z, x * y, x * z, y * z, x * x - y * y, 3 * z * z - 1], axis=1)
+
+
+def shading_fit(grey: np.ndarray, mesh: Mesh, R: np.ndarray, t: np.ndarray, camera: Camera) -> float:
+    """How much of the image's intensity over the part's silhouette at the pose its surface
+    normals explain under some light: R^2 of the spherical-harmonic fit of the
+    ``1 - SHADING_TRIM`` best-fitting pixels (refit after trimming); NaN if the silhouette has
+    under 50 pixels or any vertex is behind the camera."""
+    if np.any((mesh.vertices @ R.T + t)[:, 2] <= 1e-4):
+        return float("nan")
+    raster = rasterize(camera, [Placed(mesh, R, t)])
+    if len(raster.pixels) < 50:
+        return float("nan")
+    n = raster.normals
+    n = np.where(np.einsum("ij,ij->i", n, raster.points)[:, None] > 0, -n, n)  # facing the viewer
+    basis, values = sh_basis(n), grey.reshape(-1)[raster.pixels].astype(float)
+    kept = np.ones(len(values), bool)
+    for _ in range(2):
+        coefficients = np.linalg.lstsq(basis[kept], values[kept], rcond=None)[0]
+        residual = np.abs(basis @ coefficients - values)
+        kept = residual <= np.quantile(residual, 1.0 - SHADING_TRIM)
+    spread = np.var(values[kept])
+    return float(1.0 - np.mean(residual[kept] ** 2) / spread) if spread > 1e-9 else 0.0
+
+
 def auc(values: np.ndarray, right: np.ndarray) -> float:
     """The probability that a right pose's value exceeds a wrong one's (ties half)."""
     ok = ~np.isnan(values)
@@ -123,6 +166,45 @@ def tables(images: list[dict]) -> None:
                         final_wins += final[cue] > p[cue]
         values = np.array([f[cue] for _, f in finals], float)
         print(f"| {cue} | {truth_wins} of {pairs} | {final_wins} of {finalist_pairs} | {auc(values, right):.2f} |")
+
+
+def logistic_fit(X: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Weights (bias first) of a logistic model of ``y`` on standardised ``X``, lightly ridged."""
+    Z = np.c_[np.ones(len(X)), X]
+    signs = 2.0 * y - 1.0
+
+    def loss(w):
+        margin = signs * (Z @ w)
+        return np.sum(np.logaddexp(0.0, -margin)) + 0.01 * w @ w, \
+            -Z.T @ (signs * np.exp(-np.logaddexp(0.0, margin))) + 0.02 * w
+
+    return minimize(loss, np.zeros(Z.shape[1]), jac=True).x
+
+
+def combined_tables(images: list[dict]) -> None:
+    """Can the cues, combined with the estimator's confidence, tell right found poses from
+    wrong ones on parts they were not fitted on? Per cue set, a logistic model fitted on every
+    part but one and applied to that one (leave one part out): the AUC of right against wrong
+    found poses, and how many right poses the most confident keep while at least 95 % of those
+    kept are right."""
+    finals = [(r["part"], next(p for p in r["poses"] if p["kind"] == "final")) for r in images if r["found"]]
+    parts = np.array([part for part, _ in finals])
+    right = np.array([f["right"] for _, f in finals])
+    print(f"\nCombined with the confidence, leave one part out ({len(finals)} found poses, {right.sum()} right)")
+    print("| cues | AUC right vs wrong found | right kept at 95 % precision |")
+    print("|---|---|---|")
+    for cues in COMBINED:
+        X = np.nan_to_num(np.array([[f[c] for c in cues] for _, f in finals], float))
+        predicted = np.zeros(len(finals))
+        for part in np.unique(parts):
+            fit = parts != part
+            mean, spread = X[fit].mean(axis=0), X[fit].std(axis=0) + 1e-9
+            w = logistic_fit((X[fit] - mean) / spread, right[fit])
+            predicted[~fit] = np.c_[np.ones((~fit).sum()), (X[~fit] - mean) / spread] @ w
+        kept_right = np.cumsum(right[np.argsort(-predicted)])
+        precise = kept_right / np.arange(1, len(right) + 1) >= 0.95
+        print(f"| {' + '.join(cues)} | {auc(predicted, right):.2f} | "
+              f"{kept_right[np.flatnonzero(precise)[-1]] if precise.any() else 0} of {right.sum()} |")
 
 
 def records(args) -> list[dict]:
@@ -160,6 +242,7 @@ def records(args) -> list[dict]:
                 nats = pose_surprises(graph, np.array([x[2] for x in poses]), np.array([x[3] for x in poses]),
                                       frame, p.pose)
                 bins, n_bins = quantised(image)
+                grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
                 described = []
                 for (kind, score, R, t), n in zip(poses, nats):
                     depth = float((R @ graph.model_center + t)[2])
@@ -168,7 +251,10 @@ def records(args) -> list[dict]:
                         "kind": kind, "score": float(score), "nats": float(n),
                         "right": bool(pose_errors(R, t, entry.R, entry.t, model, graph).success_sym),
                         "contrast_mesh": band_contrast(bins, n_bins, mesh_silhouette(mesh, R, t, camera), band),
-                        "contrast_hull": band_contrast(bins, n_bins, edge_hull(graph, R, t, camera), band)})
+                        "contrast_hull": band_contrast(bins, n_bins, edge_hull(graph, R, t, camera), band),
+                        "shading_fit": shading_fit(grey, mesh, R, t, camera)})
+                if est.found:
+                    next(d for d in described if d["kind"] == "final")["confidence"] = float(est.confidence)
                 out.append({"part": name, "condition": condition, "image": i, "found": bool(est.found),
                             "poses": described})
                 print(f"{name} {condition} {i}: {len(described)} poses", flush=True)
@@ -191,6 +277,8 @@ def main(argv=None) -> int:
         out.write_text(json.dumps({"images": images}) + "\n")
         print(f"wrote {out}", file=sys.stderr)
     tables(images)
+    if all("confidence" in p for r in images if r["found"] for p in r["poses"] if p["kind"] == "final"):
+        combined_tables(images)
     return 0
 
 
