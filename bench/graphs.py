@@ -4,7 +4,8 @@ A cached file's name carries the graph format version, so that checkouts on diff
 format versions sharing one data/ folder each compile and keep their own file, and the
 symmetry detection's version (``offline.symmetry.DETECTION_VERSION``): a graph of the same
 format found with an older detection is not compiled again (minutes) but copied with its
-symmetries found anew (seconds).
+symmetries found anew (seconds), and one cached before graphs held the part's surface gets it
+(seconds).
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from pathlib import Path
 
 from brepose_ros.aspect_graph import FORMAT_VERSION, SUFFIX, AspectGraph
 from brepose_ros.offline.cad import load_step
-from brepose_ros.offline.compiler import compile_aspect_graph, with_symmetries
+from brepose_ros.offline.compiler import compile_aspect_graph, surface_mesh, with_surface, with_symmetries
 from brepose_ros.offline.symmetry import DETECTION_VERSION
 
 
@@ -27,7 +28,12 @@ def cached_graph_path(step: Path, cache: Path, step_deg: float, label: str | Non
         older = sorted([*cache.glob(f"{step.stem}_{label}_v{FORMAT_VERSION}{SUFFIX}"),
                         *cache.glob(f"{step.stem}_{label}_v{FORMAT_VERSION}s*{SUFFIX}")])
         if older:
-            with_symmetries(AspectGraph.load(older[-1]), load_step(step)).save(path)
+            surface = surface_mesh(load_step(step))
+            with_surface(with_symmetries(AspectGraph.load(older[-1]), surface), surface).save(path)
         else:
             compile_aspect_graph(step, step_deg=step_deg, lonlat=lonlat).save(path)
+    else:
+        graph = AspectGraph.load(path)
+        if graph.surface is None:  # cached before graphs held the part's surface
+            with_surface(graph, surface_mesh(load_step(step))).save(path)
     return path

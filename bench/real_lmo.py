@@ -81,7 +81,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
 REPO = Path(__file__).resolve().parents[1]
@@ -93,7 +92,7 @@ from brepose_ros.evaluation.metrics import ModelPoints  # noqa: E402
 from brepose_ros.geometry import normalize  # noqa: E402
 from brepose_ros.evaluation.overlay import draw_overlay, draw_segments  # noqa: E402
 from brepose_ros.offline.cad import Mesh  # noqa: E402
-from brepose_ros.offline.compiler import compile_aspect_graph  # noqa: E402
+from brepose_ros.offline.compiler import compile_aspect_graph, surface_mesh, with_surface  # noqa: E402
 from brepose_ros.offline.mesh import load_mesh  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
@@ -168,6 +167,9 @@ def graph_of(obj: int, step_deg: float) -> AspectGraph:
     graph = AspectGraph.load(path, step_path=mesh)
     if graph.colour_histogram is None:  # cached before graphs kept a mesh's colour: the mesh has it
         graph = dataclasses.replace(graph, colour_histogram=load_mesh(mesh, "mm").colour_histogram)
+    if graph.surface is None:  # cached before graphs held the part's surface
+        graph = with_surface(graph, surface_mesh(load_mesh(mesh, "mm")))
+        graph.save(path)
     return graph
 
 
@@ -445,9 +447,7 @@ def scene_meshes() -> dict[int, Mesh]:
     """The 8 objects' meshes in metres with smooth vertex normals, for rendering."""
     meshes = {}
     for obj in NAMES:
-        part = load_mesh(LMO / "models" / f"obj_{obj:06d}.ply", "mm")
-        normals = trimesh.Trimesh(part.vertices, part.triangles, process=False).vertex_normals
-        meshes[obj] = Mesh(part.vertices, part.triangles, normals)
+        meshes[obj] = surface_mesh(load_mesh(LMO / "models" / f"obj_{obj:06d}.ply", "mm"))
     return meshes
 
 
@@ -457,7 +457,8 @@ def appearance_report(rows: list[dict], objects) -> None:
     of them the truth beats by the shading fit (how much of the intensity over the silhouette the
     mesh's normals explain under some light), by the contrast across the silhouette, and by the
     edge score of the truth refined from beside it (``near score``)."""
-    from bench.silhouette_contrast import band_contrast, mesh_silhouette, quantised, shading_fit
+    from bench.silhouette_contrast import band_contrast, mesh_silhouette, quantised
+    from brepose_ros.online.appearance import shading_fit
 
     camera, meshes = Camera.load(LMO / "camera.json"), scene_meshes()
     targets = {(t.frame, t.obj): t for t in load_targets(LMO)}

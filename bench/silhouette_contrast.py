@@ -11,7 +11,7 @@ the refinement's finalists (``PoseRefiner.finalists``, captured), the final pose
 truth refined and polished (``occlusion_diagnosis.refined_truth``) are each scored by the
 edges (score, evidence in nats), by the *contrast* of their silhouette: 1 - the
 Bhattacharyya coefficient of the colour histograms of two bands along it, inside and outside
-(``band_contrast``), and by the *shading fit* (``shading_fit``: how much of the grey level
+(``band_contrast``), and by the *shading fit* (``online.appearance.shading_fit``: how much of the grey level
 over the mesh's silhouette at the pose its normals explain under some distant light, the
 spherical harmonics up to order 2, outliers such as an occluder trimmed). The silhouette is
 the mesh's rasterised at the pose (an oracle: the graph holds no mesh) or the convex hull of
@@ -45,9 +45,9 @@ from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.camera import Camera  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.offline.cad import Mesh, load_step, tessellate  # noqa: E402
+from brepose_ros.online.appearance import shading_fit  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.scoring import pose_surprises, visible_rows  # noqa: E402
-from brepose_ros.synthetic.render import Placed, rasterize  # noqa: E402
 
 #: each band is this share of the part's projected size wide, and at least MIN_BAND_PX
 BAND_SHARE = 0.06
@@ -56,8 +56,6 @@ CUES = ("score", "nats", "contrast_mesh", "contrast_hull", "shading_fit")
 #: the cue sets combined with the confidence (``combined_tables``)
 COMBINED = (("confidence",), ("confidence", "nats"), ("confidence", "contrast_mesh"), ("confidence", "shading_fit"),
             ("confidence", "nats", "contrast_mesh", "shading_fit"))
-#: the share of the silhouette's pixels the shading fit may leave out as outliers (an occluder, a highlight)
-SHADING_TRIM = 0.3
 
 
 def mesh_silhouette(mesh: Mesh, R: np.ndarray, t: np.ndarray, camera: Camera) -> np.ndarray | None:
@@ -105,36 +103,6 @@ def band_contrast(bins: np.ndarray, n_bins: int, mask: np.ndarray | None, band_p
     h_in = np.bincount(bins[inside], minlength=n_bins) / inside.sum()
     h_out = np.bincount(bins[outside], minlength=n_bins) / outside.sum()
     return float(1.0 - np.sum(np.sqrt(h_in * h_out)))
-
-
-def sh_basis(normals: np.ndarray) -> np.ndarray:
-    """The 9 real spherical harmonics up to order 2 at unit normals (constants dropped): a
-    convex Lambertian surface's image under any distant light lies close to their span
-    (Basri and Jacobs, PAMI 2003)."""
-    x, y, z = normals.T
-    return np.stack([np.ones_like(x), x, y, z, x * y, x * z, y * z, x * x - y * y, 3 * z * z - 1], axis=1)
-
-
-def shading_fit(grey: np.ndarray, mesh: Mesh, R: np.ndarray, t: np.ndarray, camera: Camera) -> float:
-    """How much of the image's intensity over the part's silhouette at the pose its surface
-    normals explain under some light: R^2 of the spherical-harmonic fit of the
-    ``1 - SHADING_TRIM`` best-fitting pixels (refit after trimming); NaN if the silhouette has
-    under 50 pixels or any vertex is behind the camera."""
-    if np.any((mesh.vertices @ R.T + t)[:, 2] <= 1e-4):
-        return float("nan")
-    raster = rasterize(camera, [Placed(mesh, R, t)])
-    if len(raster.pixels) < 50:
-        return float("nan")
-    n = raster.normals
-    n = np.where(np.einsum("ij,ij->i", n, raster.points)[:, None] > 0, -n, n)  # facing the viewer
-    basis, values = sh_basis(n), grey.reshape(-1)[raster.pixels].astype(float)
-    kept = np.ones(len(values), bool)
-    for _ in range(2):
-        coefficients = np.linalg.lstsq(basis[kept], values[kept], rcond=None)[0]
-        residual = np.abs(basis @ coefficients - values)
-        kept = residual <= np.quantile(residual, 1.0 - SHADING_TRIM)
-    spread = np.var(values[kept])
-    return float(1.0 - np.mean(residual[kept] ** 2) / spread) if spread > 1e-9 else 0.0
 
 
 def auc(values: np.ndarray, right: np.ndarray) -> float:

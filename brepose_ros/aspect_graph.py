@@ -30,6 +30,10 @@ by any angle about ``symmetry_axes[c]`` (a point on the axis and its unit direct
 ``symmetry_shares`` / ``symmetry_axis_shares`` hold the share of the edges each maps onto
 edges: at least ``EXACT_SYMMETRY_SHARE`` is an exact symmetry (the poses are equivalent),
 less a near one (twins the image must tell apart: ``online.symmetry``).
+
+The part's surface (``surface_*``, optional): the triangles the compiler tessellated (a STEP
+part: normals split between faces) or read (a mesh: smooth normals), model frame, metres,
+for the look of the part's silhouette at a pose (``online.appearance``).
 """
 from __future__ import annotations
 
@@ -77,10 +81,16 @@ _ARRAYS = {
 }
 #: arrays a file may hold or not (a graph of a part without them, or written before them,
 #: reads as before, so this is no new format version): the model's surface colour as a
-#: chromaticity histogram (``online.colour_regions``), from a mesh with vertex colours
+#: chromaticity histogram (``online.colour_regions``), from a mesh with vertex colours; the
+#: part's surface as triangles with per-vertex normals, N vertices and M triangles, for the
+#: look of its silhouette at a pose (``online.appearance``), all three or none
 _OPTIONAL_ARRAYS = {
     "colour_histogram": (np.float32, ("H", "H")),
+    "surface_vertices": (np.float32, ("N", "3")),
+    "surface_normals": (np.float32, ("N", "3")),
+    "surface_triangles": (np.int32, ("M", "3")),
 }
+_SURFACE_ARRAYS = ("surface_vertices", "surface_normals", "surface_triangles")
 
 #: a symmetry mapping at least this share of the edges onto edges is exact: what is left
 #: unmatched is the sampling of curves, not a feature (a cube's, box's or cylinder's turns
@@ -130,6 +140,10 @@ class AspectGraph:
     symmetry_axis_shares: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: (COLOUR_BINS, COLOUR_BINS) the surface's chromaticity histogram summing to 1, or None: no colour
     colour_histogram: np.ndarray | None = None
+    #: the part's surface (model frame, metres; module doc), or None: compiled before graphs held it
+    surface_vertices: np.ndarray | None = None
+    surface_normals: np.ndarray | None = None
+    surface_triangles: np.ndarray | None = None
 
     @property
     def n_views(self) -> int:
@@ -172,6 +186,15 @@ class AspectGraph:
     def visible_segments(self, R: np.ndarray, t: np.ndarray) -> slice:
         """Rows of the segments visible from the view nearest to the pose."""
         return self.view_slice(self.nearest_view(R, t))
+
+    @cached_property
+    def surface(self):
+        """The part's surface as an ``offline.cad.Mesh`` (float64 vertices), or None."""
+        if self.surface_vertices is None:
+            return None
+        from .offline.cad import Mesh  # offline.cad reads this module's file_sha256 on import
+
+        return Mesh(self.surface_vertices.astype(np.float64), self.surface_triangles, self.surface_normals)
 
     @property
     def exact_symmetries(self) -> np.ndarray:
@@ -375,8 +398,13 @@ def _check_arrays(path: Path, metadata: dict, arrays: dict[str, np.ndarray]) -> 
     directions, offsets = arrays["view_directions"], arrays["seg_offsets"]
     n_views = directions.shape[0] if directions.ndim else -1
     n_segments = int(offsets[-1]) if offsets.ndim == 1 and len(offsets) else -1
+    surface = [name for name in _SURFACE_ARRAYS if name in arrays]
+    if surface and len(surface) < len(_SURFACE_ARRAYS):
+        raise AspectGraphError(f"{path}: holds {', '.join(surface)} but not all of {', '.join(_SURFACE_ARRAYS)}")
     sizes = {"V": n_views, "V+1": n_views + 1, "S": n_segments, "Y": len(arrays["symmetry_shares"]),
-             "C": len(arrays["symmetry_axis_shares"]), "H": COLOUR_BINS}
+             "C": len(arrays["symmetry_axis_shares"]), "H": COLOUR_BINS,
+             "N": len(arrays["surface_vertices"]) if surface else -1,
+             "M": len(arrays["surface_triangles"]) if surface else -1}
     present = {name: _OPTIONAL_ARRAYS[name] for name in _OPTIONAL_ARRAYS if name in arrays}
     for name, (dtype, shape) in (_ARRAYS | present).items():
         a = arrays[name]
@@ -390,9 +418,22 @@ def _check_arrays(path: Path, metadata: dict, arrays: dict[str, np.ndarray]) -> 
     if offsets[0] != 0 or np.any(np.diff(offsets) < 0):
         raise AspectGraphError(f"{path}: seg_offsets is not a non-decreasing list starting at 0")
     _check_symmetries(path, arrays)
+    if surface:
+        _check_surface(path, arrays)
     colour = arrays.get("colour_histogram")
     if colour is not None and (colour.min() < 0 or abs(float(colour.sum()) - 1.0) > 1e-3):
         raise AspectGraphError(f"{path}: colour_histogram is not a histogram (non-negative, summing to 1)")
+
+
+def _check_surface(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Triangles index the surface's vertices and its normals are unit vectors: anything else
+    would draw another part's silhouette, or none, at every pose."""
+    triangles, n_vertices = arrays["surface_triangles"], len(arrays["surface_vertices"])
+    if len(triangles) == 0 or triangles.min() < 0 or triangles.max() >= n_vertices:
+        raise AspectGraphError(f"{path}: surface_triangles is empty or indexes a vertex outside the "
+                               f"{n_vertices} of surface_vertices")
+    if np.abs(np.linalg.norm(arrays["surface_normals"], axis=1) - 1.0).max() > 1e-3:
+        raise AspectGraphError(f"{path}: surface_normals holds a vector that is not a unit normal")
 
 
 def _check_symmetries(path: Path, arrays: dict[str, np.ndarray]) -> None:

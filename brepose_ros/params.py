@@ -205,6 +205,11 @@ class PoseParams(Ranged):
         "ADD(-S) 0.1 d: the wrong ones are near misses (a depth 5-10 % of the diameter off, a turn of 5-10 "
         "degrees) and half turns of near-symmetric parts. 0.8 was right 73 of 76 times there (96 %), at a "
         "fifth of 0.55's poses", 0.08, 0.0, 1.0)
+    min_shading_fit: float = doc(
+        "a pose whose shading fit is lower is reported as not found: how much of the image's grey level over the "
+        "part's silhouette the part's surface normals at the pose explain under some light (online/appearance.py, "
+        "about 10-15 ms an image); it needs an aspect graph holding the part's surface (compiled since session 27: "
+        "recompile an older one). 0: not computed. MEASURED", 0.0, 0.0, 1.0)
     prior: float = doc(
         "how often the part is in view, as a share of the images (1: always); the confidence is moved by Bayes' "
         "rule from the mix it was fitted at (half the images, brepose_ros/confidence.yaml) to this, so that it is "

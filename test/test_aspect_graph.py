@@ -1,6 +1,7 @@
 """View sphere, hidden-line removal and the aspect graph file, on parts with known answers."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import struct
 import zipfile
@@ -235,6 +236,19 @@ def test_save_load_round_trip_is_identical(graph, sample_step, tmp_path):
         assert all(npz[name].dtype != object for name in npz.files)
 
 
+def test_the_graph_holds_the_parts_surface_and_reads_without_it(graph, tmp_path):
+    """The tessellated surface within the part's box with unit normals, kept through a save;
+    a graph written before graphs held it reads with no surface."""
+    surface = graph.surface
+    assert len(surface.triangles) > 12 and surface.triangles.max() < len(surface.vertices)
+    assert np.allclose(np.linalg.norm(surface.normals, axis=1), 1.0, atol=1e-5)
+    assert np.linalg.norm(np.ptp(surface.vertices, axis=0)) == pytest.approx(graph.model_diameter, rel=0.01)
+    loaded = AspectGraph.load(graph.save(tmp_path / "sample.brepose.npz"))
+    assert np.array_equal(loaded.surface.vertices, surface.vertices)
+    older = dataclasses.replace(graph, surface_vertices=None, surface_normals=None, surface_triangles=None)
+    assert AspectGraph.load(older.save(tmp_path / "older.brepose.npz")).surface is None
+
+
 def missing(path, tmp_path):
     return tmp_path / "absent.brepose.npz"
 
@@ -293,8 +307,12 @@ def rewritten(**changes):
     (rewritten(step_sha256=lambda a: None), "metadata lacks step_sha256"),
     (rewritten(seg_kind=lambda a: a.astype(np.int64)), "array seg_kind has dtype int64"),
     (rewritten(xy_scale=lambda a: a[:-1]), "array xy_scale has dtype .* shape"),
+    (rewritten(surface_triangles=lambda a: a + 10 ** 6), "surface_triangles .* indexes a vertex outside"),
+    (rewritten(surface_normals=lambda a: a * 2), "surface_normals holds a vector that is not a unit normal"),
+    (rewritten(surface_normals=lambda a: None), "holds surface_vertices, surface_triangles but not all"),
 ], ids=["missing", "not-npz", "truncated", "flipped-byte", "array-edited", "metadata-edited", "newer-version",
-        "older-version", "missing-array", "missing-metadata", "wrong-dtype", "wrong-shape"])
+        "older-version", "missing-array", "missing-metadata", "wrong-dtype", "wrong-shape", "surface-index",
+        "surface-normals", "surface-partial"])
 def test_damaged_files_are_refused_naming_the_cause(graph, tmp_path, damage, message):
     path = damage(graph.save(tmp_path / "sample.brepose.npz"), tmp_path)
     with pytest.raises(AspectGraphError, match=message):

@@ -402,3 +402,49 @@ def test_the_choice_replayed_on_the_candidates_is_the_estimate(bracket, estimato
         assert chosen.score == estimate.score
         if estimate.found:
             assert np.array_equal(chosen.R, estimate.R) and np.array_equal(chosen.t, estimate.t)
+
+
+@pytest.mark.slow
+def test_the_shading_fit_is_measured_and_gates_the_found_rule_where_asked(bracket, estimator, tmp_path):
+    """With ``pose.min_shading_fit`` a clean image's right pose reports its shading fit (its
+    surface explains the grey levels: above 0.8), is found when the floor is below it and not
+    found when it is above it, the reason naming the fit; at 0 nothing is computed."""
+    from brepose_ros.evaluation.metrics import prediction_entry
+    from brepose_ros.online.estimator import not_found_reason
+    from brepose_ros.params import EstimatorParams
+
+    generate_scene(bracket[0], tmp_path / "scene", 1, seed=3, config=SceneConfig())
+    scene = load_scene(tmp_path / "scene")
+    image = cv2.imread(str(scene.entries[0].path), cv2.IMREAD_UNCHANGED)
+    assert estimator.estimate(image, scene.camera).shading_fit is None
+    gated = Estimator(estimator.graph, EstimatorParams().with_flat({"pose.min_shading_fit": 0.5}))
+    try:
+        estimate = gated.estimate(image, scene.camera)
+        assert estimate.found and estimate.shading_fit > 0.8 and "appearance" in estimate.timings
+        assert prediction_entry("a.png", estimate)["shading_fit"] == pytest.approx(estimate.shading_fit)
+        strict = EstimatorParams().with_flat({"pose.min_shading_fit": min(1.0, estimate.shading_fit + 1e-6)})
+        gated.params = strict
+        refused = gated.estimate(image, scene.camera)
+        assert not refused.found and "shading fit" in not_found_reason(refused, strict.pose)
+    finally:
+        gated.close()
+
+
+def test_asking_for_the_shading_fit_of_a_graph_without_a_surface_is_refused(bracket, estimator):
+    """A graph compiled before graphs held the part's surface cannot give the fit: the
+    estimator refuses the parameter at once, naming the remedy, and a parameter change asking
+    for it is refused whole."""
+    import dataclasses
+    from brepose_ros.params import EstimatorParams
+
+    older = dataclasses.replace(estimator.graph, surface_vertices=None, surface_normals=None, surface_triangles=None)
+    asking = EstimatorParams().with_flat({"pose.min_shading_fit": 0.6})
+    with pytest.raises(ValueError, match="recompile it with brepose-compile"):
+        Estimator(older, asking)
+    plain = Estimator(older)
+    try:
+        with pytest.raises(ValueError, match="surface"):
+            plain.params = asking
+        assert plain.params.pose.min_shading_fit == 0.0
+    finally:
+        plain.close()

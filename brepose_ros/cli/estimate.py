@@ -47,7 +47,8 @@ def main(argv=None) -> int:
             image = read_image_file(path)
             estimate = estimator.estimate(image, camera)
             predictions.append(prediction_entry(path, estimate))
-            measures = f"score {estimate.score:.2f}, confidence {estimate.confidence:.2f}"
+            measures = f"score {estimate.score:.2f}, confidence {estimate.confidence:.2f}" + (
+                f", shading fit {estimate.shading_fit:.2f}" if estimate.shading_fit is not None else "")
             state = measures if estimate.found else f"not found ({not_found_reason(estimate, estimator.params.pose)})"
             if estimate.found and estimate.ambiguous:
                 state += f", ambiguous: the image cannot tell it from a symmetric twin (margin " \

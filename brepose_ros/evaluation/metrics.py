@@ -166,7 +166,8 @@ def write_predictions(path: str | Path, predictions: list[dict]) -> None:
 def prediction_entry(image: str, estimate) -> dict:
     """One entry of the predictions JSON; for a part with near symmetries also the pose's
     ``symmetry_margin`` over its twins, whether the image left it ``ambiguous`` and whether a
-    twin ties with it (``twin_tie``); where a time budget left steps out, which (``skipped``)."""
+    twin ties with it (``twin_tie``); where a time budget left steps out, which (``skipped``);
+    where ``pose.min_shading_fit`` asked for it, the pose's ``shading_fit``."""
     found = estimate.found
     entry = {"image": image,
              "R": np.asarray(estimate.R).ravel().tolist() if found else None,
@@ -178,6 +179,8 @@ def prediction_entry(image: str, estimate) -> dict:
                      twin_tie=bool(estimate.twin_tie))
     if estimate.skipped:
         entry["skipped"] = list(estimate.skipped)
+    if estimate.shading_fit is not None:
+        entry["shading_fit"] = float(estimate.shading_fit)
     return entry
 
 

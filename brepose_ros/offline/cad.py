@@ -147,6 +147,18 @@ class Mesh:
     normals: np.ndarray  # (N, 3) per-vertex normals: smooth within a face, split between faces
 
 
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Smooth normals: the area-weighted mean of each vertex's triangles' normals (+z for a
+    vertex of degenerate triangles only, which has none)."""
+    tri = vertices[triangles]
+    face = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals = np.zeros_like(vertices, dtype=np.float64)
+    for corner in range(3):
+        np.add.at(normals, triangles[:, corner], face)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return np.where(length > 0, normals / np.where(length > 0, length, 1.0), [0.0, 0.0, 1.0])
+
+
 def tessellate(part: Part, relative_deflection: float = 2e-3, angular_deflection: float = 0.3) -> Mesh:
     """Triangulate every face; the chord deflection is relative to the part's diameter.
 

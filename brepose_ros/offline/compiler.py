@@ -17,7 +17,7 @@ from ..aspect_graph import AspectGraph, AspectGraphError
 from ..geometry import look_at_rotation
 from ..metric_space import normalisation_of
 from ..viewsphere import fibonacci_directions, lonlat_directions, view_ups
-from .cad import load_step, tessellate
+from .cad import Mesh, load_step, tessellate, vertex_normals
 from .hidden_lines import (DEFAULT_CHORD_TOLERANCE, DEFAULT_METHOD, DEFAULT_MIN_LENGTH, KIND_NAMES,
                            HiddenLineRemover, view_coordinates)
 from .mesh import MeshPart, is_mesh_file, load_mesh
@@ -149,7 +149,8 @@ def _assemble(part, params, directions, rotations, views) -> AspectGraph:
     counts = [len(s) for s in seg_xy]
     seg_3d = np.concatenate([s for s, _ in views]).astype(np.float64)
     seg_kind = np.concatenate([k for _, k in views]).astype(np.uint8)
-    return with_symmetries(AspectGraph(
+    surface = surface_mesh(part)
+    return with_surface(with_symmetries(AspectGraph(
         step_sha256=part.sha256, params=params, model_center=np.asarray(part.center, dtype=np.float64),
         model_diameter=float(part.diameter), n_faces=int(part.n_faces),
         view_directions=np.asarray(directions, dtype=np.float64),
@@ -158,15 +159,32 @@ def _assemble(part, params, directions, rotations, views) -> AspectGraph:
         seg_xy=np.concatenate(seg_xy), xy_origin=np.array(xy_origin, dtype=np.float64),
         xy_scale=np.array(xy_scale, dtype=np.float64),
         seg_3d=seg_3d, seg_kind=seg_kind,
-        colour_histogram=part.colour_histogram if isinstance(part, MeshPart) else None), part)
+        colour_histogram=part.colour_histogram if isinstance(part, MeshPart) else None), surface), surface)
 
 
-def with_symmetries(graph: AspectGraph, part) -> AspectGraph:
-    """The graph with the symmetries found on its edge sections and the part's surface (a
-    loaded STEP part or a ``MeshPart``); also re-detects them in a graph compiled before the
-    detection changed (bench/graphs.py)."""
-    mesh = part if isinstance(part, MeshPart) else tessellate(part)
-    found = detect_symmetries(graph.seg_3d, graph.seg_kind, graph.model_diameter, (mesh.vertices, mesh.triangles))
+def surface_mesh(part) -> Mesh:
+    """The part's surface: a ``MeshPart``'s own triangles with smooth normals (a scan's), a
+    loaded STEP part tessellated (normals split between its faces)."""
+    if isinstance(part, MeshPart):
+        return Mesh(part.vertices, part.triangles, vertex_normals(part.vertices, part.triangles))
+    return tessellate(part)
+
+
+def with_surface(graph: AspectGraph, surface: Mesh) -> AspectGraph:
+    """The graph holding the part's surface (``surface_mesh``), as the file stores it."""
+    length = np.linalg.norm(surface.normals, axis=1, keepdims=True)
+    normals = np.where(length > 0, surface.normals / np.where(length > 0, length, 1.0), [0.0, 0.0, 1.0])
+    return dataclasses.replace(graph, surface_vertices=surface.vertices.astype(np.float32),
+                               surface_normals=normals.astype(np.float32),
+                               surface_triangles=surface.triangles.astype(np.int32))
+
+
+def with_symmetries(graph: AspectGraph, surface: Mesh) -> AspectGraph:
+    """The graph with the symmetries found on its edge sections and the part's surface
+    (``surface_mesh``); also re-detects them in a graph compiled before the detection changed
+    (bench/graphs.py)."""
+    found = detect_symmetries(graph.seg_3d, graph.seg_kind, graph.model_diameter,
+                              (surface.vertices, surface.triangles))
     return dataclasses.replace(graph, symmetry_rotations=found.rotations, symmetry_translations=found.translations,
                                symmetry_shares=found.shares, symmetry_axes=found.axes,
                                symmetry_axis_shares=found.axis_shares)

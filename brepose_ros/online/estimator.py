@@ -69,6 +69,7 @@ from .larger import centre_distance, larger_check_applies, larger_pose, projecte
 from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
+from .appearance import grey_of, shading_fit
 from .colour_regions import colour_places, colour_regions
 from .confidence import Calibration, load_calibration
 from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_scores, pose_shares, scored_tolerances
@@ -133,6 +134,9 @@ class Estimate:
     #: the steps not started because they would have overrun the image's time budget
     #: (``time_budget.TimeBudget``)
     skipped: tuple[str, ...] = ()
+    #: how much of the grey level over the part's silhouette at the pose its surface explains
+    #: (``appearance.shading_fit``); None unless ``pose.min_shading_fit`` asks for it
+    shading_fit: float | None = None
 
 
 @dataclass
@@ -169,6 +173,7 @@ class Estimator:
         graph.view_cells  # the nearest views' look-up derived now too (10 ms at 2,500 views)
         keep_freed_memory()
         self._params = params or EstimatorParams()
+        self._check_surface(self._params)
         self._hypotheses = TetradHypotheses(graph, self._params.matching)
         self._refiner = PoseRefiner(graph)
         self._pool = WorkerPool(self._params.matching.workers)
@@ -189,6 +194,7 @@ class Estimator:
         """New parameters apply from the next image; view features, templates and worker
         threads are rebuilt if needed (never torn down under an image in flight)."""
         calibration = load_calibration(value.pose.confidence_file)  # a bad file refuses the whole change
+        self._check_surface(value)
         with self._lock:
             if value.matching.max_model_segments != self._params.matching.max_model_segments:
                 self._hypotheses = TetradHypotheses(self.graph, value.matching)
@@ -198,6 +204,13 @@ class Estimator:
                 self._retired.append(self._pool)
                 self._pool = WorkerPool(value.matching.workers)
             self._params, self._calibration = value, calibration
+
+    def _check_surface(self, params: EstimatorParams) -> None:
+        """ValueError where ``pose.min_shading_fit`` asks for the part's surface and the graph
+        has none."""
+        if params.pose.min_shading_fit > 0 and self.graph.surface is None:
+            raise ValueError("pose.min_shading_fit needs the part's surface, which this aspect graph does not "
+                             "hold (compiled before session 27): recompile it with brepose-compile, or set 0")
 
     def close(self) -> None:
         with self._lock:
@@ -258,8 +271,13 @@ class Estimator:
         if p.pose.twin_check:
             best, margin, tied = check_twins(best, self.graph, self._refiner, frame, p.pose, work.pool)
             work.lap("symmetry")
+        shading = None
+        if p.pose.min_shading_fit > 0:
+            shading = shading_fit(grey_of(image), self.graph.surface, best.R, best.t, camera)
+            work.lap("appearance")
         work.timings["total"] = sum(work.timings.values())
         estimate = self._described(work, best, frame, margin, tied)
+        estimate.shading_fit = shading
         work.budget.finished()
         estimate.skipped = tuple(work.budget.skipped)
         if is_found(estimate, p.pose):
@@ -511,7 +529,8 @@ def is_found(estimate: Estimate, p: PoseParams) -> bool:
     the score that keeps a pose the verification barely confirms from being reported; a pose
     outside the working range (``pose.min_distance`` - ``max_distance``) cannot be right."""
     return (estimate.score >= p.min_score and estimate.confidence >= p.min_confidence
-            and p.within_distance(estimate.distance))
+            and p.within_distance(estimate.distance)
+            and (p.min_shading_fit == 0 or estimate.shading_fit >= p.min_shading_fit))
 
 
 def not_found_reason(estimate: Estimate, p: PoseParams) -> str:
@@ -520,8 +539,10 @@ def not_found_reason(estimate: Estimate, p: PoseParams) -> str:
     if estimate.score > 0 and not p.within_distance(estimate.distance):
         return (f"the best pose lies {estimate.distance:.3g} m away, outside pose.min_distance {p.min_distance:g} - "
                 f"pose.max_distance {p.max_distance:g}")
+    shading = (f"; shading fit {estimate.shading_fit:.2f}, pose.min_shading_fit {p.min_shading_fit:g}"
+               if estimate.shading_fit is not None else "")
     return (f"score {estimate.score:.2f}, pose.min_score {p.min_score:g}; confidence {estimate.confidence:.2f}, "
-            f"pose.min_confidence {p.min_confidence:g}")
+            f"pose.min_confidence {p.min_confidence:g}{shading}")
 
 
 def in_working_range(candidates: list[Candidate], graph: AspectGraph, p: PoseParams) -> list[Candidate]:

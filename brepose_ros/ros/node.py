@@ -22,7 +22,8 @@ Topics (node name ``estimator``; relative names can be remapped with ``--ros-arg
   found, score, confidence (the probability that the pose is right), error_ratio,
   view_index, image_edges, matched_pairs, nearest_pairs, symmetry_margin (-1 for a part
   without near symmetry), twin_tie, skipped (the steps ``search.time_budget_ms`` left out,
-  empty without one), estimator_ms, latency_ms (receipt
+  empty without one), shading_fit (``pose.min_shading_fit``'s measure, -1 when it is 0),
+  estimator_ms, latency_ms (receipt
   to answer), frames_skipped (frames received but replaced by a newer one before the worker
   got to them), frames_lost (samples the DDS reader reported lost), input_hz, and the
   estimator's own stage timings as ``<stage>_ms``. Besides, a status ``estimator: input``
@@ -298,7 +299,9 @@ def estimate_values(estimate: Estimate) -> dict[str, Any]:
               # a twin the image does not tell from the pose scores as well: a coin toss
               "twin_tie": estimate.twin_tie,
               # the steps search.time_budget_ms left out on this image, space-separated
-              "skipped": " ".join(estimate.skipped)}
+              "skipped": " ".join(estimate.skipped),
+              # how much of the grey level over the silhouette the part's surface explains; -1: not computed
+              "shading_fit": -1.0 if estimate.shading_fit is None else float(estimate.shading_fit)}
     values.update({f"{stage}_ms": 1000.0 * float(s) for stage, s in estimate.timings.items()})
     return values
 

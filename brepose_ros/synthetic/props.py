@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import normalize
-from ..offline.cad import Mesh
+from ..offline.cad import Mesh, vertex_normals
 
 #: Elongated props (sized by a length and a width) and compact ones (sized by their width).
 ELONGATED = ("bar", "pipe")
@@ -97,7 +97,7 @@ def blob_mesh(rng: np.random.Generator, rows: int = 14, columns: int = 24) -> Me
     c, d = a + columns, b + columns
     triangles = np.concatenate([np.stack([a, c, d], -1).reshape(-1, 3),
                                 np.stack([a, d, b], -1).reshape(-1, 3)]).astype(np.int32)
-    return _centred_unit(Mesh(vertices, triangles, _vertex_normals(vertices, triangles)))
+    return _centred_unit(Mesh(vertices, triangles, vertex_normals(vertices, triangles)))
 
 
 def polygon_plate(rng: np.random.Generator) -> Mesh:
@@ -171,13 +171,3 @@ def _centred_unit(mesh: Mesh) -> Mesh:
     """Centred on its bounding box, longest side 1."""
     low, high = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
     return Mesh((mesh.vertices - (low + high) / 2) / (high - low).max(), mesh.triangles, mesh.normals)
-
-
-def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted mean of the adjacent triangles' normals."""
-    tri = vertices[triangles]
-    face = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normals = np.zeros_like(vertices)
-    for corner in range(3):
-        np.add.at(normals, triangles[:, corner], face)
-    return normalize(normals)
