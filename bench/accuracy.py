@@ -53,6 +53,7 @@ from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import (  # noqa: E402
     NOT_FOUND_ERROR_RATE, ModelPoints, evaluate_scene, scene_summary)
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
+from brepose_ros.online.appearance import grey_of, shading_fit  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.image_edges import detect_edges  # noqa: E402
@@ -210,15 +211,19 @@ def image_record(result) -> dict:
               "symmetry_margin": result.estimate.symmetry_margin}
     if result.estimate.skipped:  # the steps search.time_budget_ms left out
         record["skipped"] = list(result.estimate.skipped)
+    if result.estimate.shading_fit is not None:
+        record["shading_fit"] = float(result.estimate.shading_fit)
     return record | (e.to_dict() if e is not None else {})
 
 
-def at_found_rule(row: dict, min_confidence: float, min_score: float = 0.0) -> dict:
-    """A results row as if ``pose.min_confidence`` and ``pose.min_score`` had been these: a
-    found pose of lower confidence or score becomes not found (records without a confidence
-    are kept as found; a rule can only drop poses the run found)."""
+def at_found_rule(row: dict, min_confidence: float, min_score: float = 0.0, min_shading: float = 0.0) -> dict:
+    """A results row as if ``pose.min_confidence``, ``pose.min_score`` and
+    ``pose.min_shading_fit`` had been these: a found pose of lower confidence, score or shading
+    fit becomes not found (records without a confidence or a fit are kept as found; a rule can
+    only drop poses the run found)."""
     dropped = [i for i in row["images"] if i["found"] and (i.get("confidence", 1.0) < min_confidence or
-                                                           i["score"] < min_score)]
+                                                           i["score"] < min_score or
+                                                           i.get("shading_fit", 1.0) < min_shading)]
     images = [{"image": i["image"], "found": False, "score": i["score"], "error_ratio": i["error_ratio"],
                "confidence": i["confidence"], "ms": i["ms"]} if i in dropped else i for i in row["images"]]
     return row | {"images": images}
@@ -316,6 +321,8 @@ def main(argv=None) -> int:
     parser.add_argument("--min-confidence", type=float, default=0.0,
                         help="with --report: the tables as if pose.min_confidence had been this (a pose of lower "
                              "confidence not found)")
+    parser.add_argument("--min-shading", type=float, default=0.0,
+                        help="with --report: the same for pose.min_shading_fit (runs record the found poses' fit)")
     parser.add_argument("--min-score", type=float, default=0.0,
                         help="with --report: the same for pose.min_score (a rule can only drop poses the run found; "
                              "not the same as a run at that floor: the twin check takes only twins scoring at least "
@@ -323,7 +330,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.report:
         rows = [row for path in args.report for row in json.loads(path.read_text())["rows"]]
-        rows = [at_found_rule(row, args.min_confidence, args.min_score) for row in rows]
+        rows = [at_found_rule(row, args.min_confidence, args.min_score, args.min_shading) for row in rows]
         print_tables(rows)
         print_found(rows)
         return 0
@@ -353,10 +360,18 @@ def main(argv=None) -> int:
         for condition in args.conditions:
             progress.set_postfix_str(f"{name}: {condition}")
             images = range(args.start, args.start + args.n)
-            results = evaluate_scene(scene(cache, name, step, condition, images, distractors, args.look,
-                                           tuple(args.span), args.seed),
-                                     estimator, model, on_image=lambda *_: progress.update(),
-                                     paper_only=args.paper_only)
+            cached = scene(cache, name, step, condition, images, distractors, args.look, tuple(args.span), args.seed)
+
+            def measured(image, result):
+                """The found pose's shading fit, measured beside the run (``--report --min-shading``)
+                where the estimator did not (``pose.min_shading_fit`` 0)."""
+                estimate = result.estimate
+                if estimate.found and estimate.shading_fit is None and graph.surface is not None:
+                    estimate.shading_fit = shading_fit(grey_of(image), graph.surface, estimate.R, estimate.t,
+                                                       cached.camera)
+                progress.update()
+
+            results = evaluate_scene(cached, estimator, model, on_image=measured, paper_only=args.paper_only)
             rows.append({"part": name, "set": part_set(name), "condition": condition,
                          "occlusion": CONDITIONS[condition].get("occlusion", 0.0),
                          "clutter": CONDITIONS[condition].get("clutter", 0), "views": graph.n_views,

@@ -121,6 +121,8 @@ NEAR_DEG, NEAR_SHIFT = 5.0, 0.02
 NEAR_STAGES = ("rounds", "climb", "polish")
 #: the bands inside and outside the silhouette compared by ``--appearance``, pixels
 APPEARANCE_BAND_PX = 4.0
+#: the floors of pose.min_shading_fit ``--appearance`` counts the estimates at
+SHADING_FLOORS = (0.5, 0.6, 0.7, 0.8)
 #: grey level behind the rendered objects (``--render``)
 RENDER_BACKGROUND = 40.0
 #: overlay colours (BGR): the true pose's edges, the estimate's when correct and when not
@@ -454,22 +456,26 @@ def scene_meshes() -> dict[int, Mesh]:
 def appearance_report(rows: list[dict], objects) -> None:
     """Where the estimate is wrong, does the look of the image over the part's silhouette prefer
     the true pose, where the edge score does not? Per object: the wrong estimates, and how many
-    of them the truth beats by the shading fit (how much of the intensity over the silhouette the
-    mesh's normals explain under some light), by the contrast across the silhouette, and by the
-    edge score of the truth refined from beside it (``near score``)."""
+    of them the truth beats by the shading fit (how much of the grey level over the silhouette
+    the mesh's normals explain under some light), by the contrast across the silhouette, and by
+    the edge score of the truth refined from beside it (``near score``). Then how many right and
+    wrong estimates ``pose.min_shading_fit`` would keep at a few floors."""
     from bench.silhouette_contrast import band_contrast, mesh_silhouette, quantised
     from brepose_ros.online.appearance import shading_fit
 
     camera, meshes = Camera.load(LMO / "camera.json"), scene_meshes()
     targets = {(t.frame, t.obj): t for t in load_targets(LMO)}
-    wrong = [r for r in rows if not r["correct"] and r["R"] is not None]
-    beats = {}
-    for r in wrong:
+    beats, fits = {}, []
+    for r in (r for r in rows if r["R"] is not None):
         image = cv2.imread(str(LMO / "rgb" / f"{r['frame']:06d}.png"), cv2.IMREAD_COLOR)
         grey, (bins, n_bins) = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), quantised(image)
         mesh, truth = meshes[r["obj"]], targets[(r["frame"], r["obj"])]
-        poses = [(np.array(r["R"]).reshape(3, 3), np.array(r["t"])), (truth.R, truth.t)]
-        shading = [shading_fit(grey, mesh, R, t, camera) for R, t in poses]
+        estimate = np.array(r["R"]).reshape(3, 3), np.array(r["t"])
+        fits.append((r["correct"], shading_fit(grey, mesh, *estimate, camera)))
+        if r["correct"]:
+            continue
+        poses = [estimate, (truth.R, truth.t)]
+        shading = [fits[-1][1], shading_fit(grey, mesh, truth.R, truth.t, camera)]
         contrast = [band_contrast(bins, n_bins, mesh_silhouette(mesh, R, t, camera), APPEARANCE_BAND_PX)
                     for R, t in poses]
         beats[(r["obj"], r["frame"])] = (shading[1] > shading[0], contrast[1] > contrast[0],
@@ -482,6 +488,12 @@ def appearance_report(rows: list[dict], objects) -> None:
         mine = [b for (o, _), b in beats.items() if obj is None or o == obj]
         print(f"| {NAMES[obj] if obj else '**all**'} | {len(mine)} | "
               + " | ".join(str(sum(b[k] for b in mine)) for k in range(3)) + " |")
+    right = [f for ok, f in fits if ok]
+    wrong = [f for ok, f in fits if not ok]
+    print(f"\nEstimates whose shading fit reaches a floor (pose.min_shading_fit): right of {len(right)}, "
+          f"wrong of {len(wrong)}")
+    for floor in SHADING_FLOORS:
+        print(f"- {floor:g}: {sum(f >= floor for f in right)} right, {sum(f >= floor for f in wrong)} wrong")
 
 
 def light_report(targets: list[Target], images: dict, meshes: dict, camera: Camera, params, objects) -> None:

@@ -13,9 +13,12 @@ it told right found poses from wrong ones better than the edge evidence (AUC 0.8
 estimates, the edge score to 48 (docs/results/verification.md, session 27).
 
 Needs the part's surface in the aspect graph (``AspectGraph.surface``: graphs compiled since
-session 27); a rasterised pose costs about 10-15 ms on a 640 x 480 image.
+session 27); a pose costs a few milliseconds (the part rasterised at about ``FIT_SIZE_PX``
+pixels across).
 """
 from __future__ import annotations
+
+import dataclasses
 
 import cv2
 import numpy as np
@@ -27,6 +30,9 @@ from ..raster import Posed, rasterize
 TRIM = 0.3
 #: a silhouette of fewer pixels gives no fit
 MIN_PIXELS = 50
+#: the image and the camera are scaled down so that the part spans at most this many pixels:
+#: shading varies slowly, and a part filling the image rasterised whole took 100-200 ms
+FIT_SIZE_PX = 96.0
 
 
 def grey_of(image: np.ndarray) -> np.ndarray:
@@ -45,9 +51,20 @@ def shading_fit(grey: np.ndarray, surface, R: np.ndarray, t: np.ndarray, camera:
     """R^2 of the spherical-harmonic fit of ``grey`` (H, W) over the silhouette of ``surface``
     (``AspectGraph.surface``) at pose R, t: fitted, the worst ``TRIM`` of the pixels left
     out, fitted again on the rest. 0, nothing explained, where the pose puts a vertex behind the
-    camera, the silhouette has fewer than ``MIN_PIXELS`` pixels or the kept grey levels are flat."""
-    if np.any((surface.vertices @ R.T + t)[:, 2] <= 1e-4):
+    camera, the silhouette has fewer than ``MIN_PIXELS`` pixels or the kept grey levels are flat. The image
+    is first scaled down so that the part spans about ``FIT_SIZE_PX`` pixels."""
+    points = surface.vertices @ R.T + t
+    if np.any(points[:, 2] <= 1e-4):
         return 0.0
+    size = camera.focal * np.linalg.norm(np.ptp(points, axis=0)) / float(np.mean(points[:, 2]))
+    scale = min(1.0, FIT_SIZE_PX / max(size, 1e-9))
+    if scale < 1.0:
+        width, height = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
+        sx, sy = width / camera.width, height / camera.height
+        # pixel centres at integer coordinates: the scaled image's centre c' = (c + 0.5) s - 0.5
+        camera = dataclasses.replace(camera, fx=camera.fx * sx, fy=camera.fy * sy, cx=(camera.cx + 0.5) * sx - 0.5,
+                                     cy=(camera.cy + 0.5) * sy - 0.5, width=width, height=height)
+        grey = cv2.resize(grey, (width, height), interpolation=cv2.INTER_AREA)
     raster = rasterize(camera, [Posed(surface, R, t)])
     if len(raster.pixels) < MIN_PIXELS:
         return 0.0
