@@ -580,3 +580,12 @@ def test_diagnostics_name_the_steps_a_time_budget_left_out():
                        n_matched=8, n_nearest=6, skipped=("seeded", "small", "larger"))
     assert estimate_values(hurried)["skipped"] == "seeded small larger"
     assert estimate_values(replace(hurried, skipped=()))["skipped"] == ""
+
+
+def test_diagnostics_carry_the_shading_fit_where_it_was_measured():
+    from brepose_ros.ros.node import estimate_values
+
+    checked = Estimate(True, R_FAKE, T_FAKE, score=0.8, error_ratio=0.2, view_index=3, n_image_segments=12,
+                       n_matched=8, n_nearest=6, shading_fit=0.93)
+    assert estimate_values(checked)["shading_fit"] == pytest.approx(0.93)
+    assert estimate_values(replace(checked, shading_fit=None))["shading_fit"] == -1.0
