@@ -9,7 +9,7 @@ that such a combination explains, after leaving out the pixels that fit worst (a
 highlight, a reflection): near 1 where the normals at the pose are the part's, lower where a
 wrong pose lays the silhouette over other faces, the background or clutter. On bench images
 it told right found poses from wrong ones better than the edge evidence (AUC 0.87 against
-0.75 for the confidence), and on the LM-O photos it preferred the truth to 137 of 171 wrong
+0.75 for the confidence), and on the LM-O photos it preferred the truth to 136 of 171 wrong
 estimates, the edge score to 48 (docs/results/verification.md, session 27).
 
 Needs the part's surface in the aspect graph (``AspectGraph.surface``: graphs compiled since
