@@ -14,6 +14,12 @@ def normalize(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+def unit_rows(v: np.ndarray, fallback) -> np.ndarray:
+    """``normalize`` of each row, ``fallback`` for a row of no length (which has no direction)."""
+    length = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.where(length > 0, v / np.where(length > 0, length, 1.0), fallback)
+
+
 def default_up(direction: np.ndarray) -> np.ndarray:
     """An up vector not parallel to ``direction``: model +Z, or +Y near the poles."""
     direction = normalize(direction)

@@ -47,6 +47,12 @@ class Raster:
     points: np.ndarray
     normals: np.ndarray
 
+    def facing_normals(self) -> np.ndarray:
+        """``normals`` turned to face the viewer: a normal interpolated across a curved
+        silhouette can turn slightly away."""
+        view = -normalize(self.points)
+        return np.where(np.einsum("ij,ij->i", self.normals, view)[:, None] < 0, -self.normals, self.normals)
+
 
 def rasterize(camera: Camera, objects: Sequence[Posed]) -> Raster:
     """Z-buffer the front faces of all objects; the nearest surface wins each pixel centre."""

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..aspect_graph import file_sha256
+from ..geometry import unit_rows
 
 #: Refuse files larger than this before parsing (a STEP part of a few hundred faces is
 #: well under 10 MB; a whole assembly or a wrong file is what larger ones usually are).
@@ -155,8 +156,7 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     normals = np.zeros_like(vertices, dtype=np.float64)
     for corner in range(3):
         np.add.at(normals, triangles[:, corner], face)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return np.where(length > 0, normals / np.where(length > 0, length, 1.0), [0.0, 0.0, 1.0])
+    return unit_rows(normals, [0.0, 0.0, 1.0])
 
 
 def tessellate(part: Part, relative_deflection: float = 2e-3, angular_deflection: float = 0.3) -> Mesh:

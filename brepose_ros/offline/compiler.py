@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..aspect_graph import AspectGraph, AspectGraphError
-from ..geometry import look_at_rotation
+from ..geometry import look_at_rotation, unit_rows
 from ..metric_space import normalisation_of
 from ..viewsphere import fibonacci_directions, lonlat_directions, view_ups
 from .cad import Mesh, load_step, tessellate, vertex_normals
@@ -171,11 +171,10 @@ def surface_mesh(part) -> Mesh:
 
 
 def with_surface(graph: AspectGraph, surface: Mesh) -> AspectGraph:
-    """The graph holding the part's surface (``surface_mesh``), as the file stores it."""
-    length = np.linalg.norm(surface.normals, axis=1, keepdims=True)
-    normals = np.where(length > 0, surface.normals / np.where(length > 0, length, 1.0), [0.0, 0.0, 1.0])
+    """The graph holding the part's surface (``surface_mesh``), as the file stores it (a normal
+    of no length, which the load check would refuse, as +z)."""
     return dataclasses.replace(graph, surface_vertices=surface.vertices.astype(np.float32),
-                               surface_normals=normals.astype(np.float32),
+                               surface_normals=unit_rows(surface.normals, [0.0, 0.0, 1.0]).astype(np.float32),
                                surface_triangles=surface.triangles.astype(np.int32))
 
 

@@ -68,10 +68,7 @@ def shading_fit(grey: np.ndarray, surface, R: np.ndarray, t: np.ndarray, camera:
     raster = rasterize(camera, [Posed(surface, R, t)])
     if len(raster.pixels) < MIN_PIXELS:
         return 0.0
-    # a normal interpolated across a curved silhouette can turn away: face it to the viewer
-    normals = np.where(np.einsum("ij,ij->i", raster.normals, raster.points)[:, None] > 0,
-                       -raster.normals, raster.normals)
-    basis, values = sh_basis(normals), grey.reshape(-1)[raster.pixels].astype(np.float64)
+    basis, values = sh_basis(raster.facing_normals()), grey.reshape(-1)[raster.pixels].astype(np.float64)
     kept = np.ones(len(values), bool)
     for _ in range(2):
         coefficients = np.linalg.lstsq(basis[kept], values[kept], rcond=None)[0]

@@ -71,9 +71,7 @@ class Rendering:
 def shade(raster: Raster, objects: Sequence[Placed], lighting: Lighting = Lighting()) -> np.ndarray:
     """BGR radiance in [0, 1] of the visible pixels (one row per ``raster.pixels``)."""
     view = -normalize(raster.points)
-    n = raster.normals
-    # Interpolated normals can turn slightly away at a curved silhouette: face the viewer.
-    n = np.where(np.einsum("ij,ij->i", n, view)[:, None] < 0, -n, n)
+    n = raster.facing_normals()
     labels = raster.labels.reshape(-1)[raster.pixels]
     albedo = np.array([obj.material.color for obj in objects])[labels]
     specular = np.array([obj.material.specular for obj in objects])[labels]
