@@ -263,10 +263,7 @@ class Estimator:
             return not_found
         if regions is not None:
             best = self._likelier_in_places(work, best, image, camera, regions, frame)
-        if larger_check_applies(best, p, work.search) and work.budget.allows(LARGER_CHECK):
-            best = larger_pose(best, self.graph, frame, p, work.search, work.hypotheses, self._refiner, work.pool)
-            work.budget.close()
-            work.lap("larger")
+        best = self._larger_checked(work, best, frame)
         margin, tied = None, False
         if p.pose.twin_check:
             best, margin, tied = check_twins(best, self.graph, self._refiner, frame, p.pose, work.pool)
@@ -329,9 +326,16 @@ class Estimator:
         benches that replay the choice on candidates they examined; ``params`` and ``pool``
         as ``_image_work``'s)."""
         work = self._image_work(params, pool)
-        best = self._choice(work, frame, candidates, {})
-        if larger_check_applies(best, work.p, work.search):
-            best = larger_pose(best, self.graph, frame, work.p, work.search, work.hypotheses, self._refiner, work.pool)
+        return self._larger_checked(work, self._choice(work, frame, candidates, {}), frame)
+
+    def _larger_checked(self, work: ImageWork, best: Candidate, frame: Frame) -> Candidate:
+        """``best``, or the larger pose about its place the larger check finds (``larger_pose``)
+        where the check applies and the image's time budget allows it."""
+        if not (larger_check_applies(best, work.p, work.search) and work.budget.allows(LARGER_CHECK)):
+            return best
+        best = larger_pose(best, self.graph, frame, work.p, work.search, work.hypotheses, self._refiner, work.pool)
+        work.budget.close()
+        work.lap("larger")
         return best
 
     def _likelier_in_places(self, work: ImageWork, best: Candidate, image: np.ndarray, camera: Camera,
