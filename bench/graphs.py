@@ -1,11 +1,11 @@
 """Aspect graphs the benchmarks share, compiled once into a cache folder (data/bench/).
 
 A cached file's name carries the graph format version, so that checkouts on different
-format versions sharing one data/ folder each compile and keep their own file, and the
-symmetry detection's version (``offline.symmetry.DETECTION_VERSION``): a graph of the same
-format found with an older detection is not compiled again (minutes) but copied with its
-symmetries found anew (seconds), and one cached before graphs held the part's surface gets it
-(seconds).
+format versions sharing one data/ folder each compile and keep their own file, the symmetry
+detection's version (``offline.symmetry.DETECTION_VERSION``) and "-surface": a graph of the
+same format found with an older detection, or cached before graphs held the part's surface,
+is not compiled again (minutes) but copied with its symmetries found anew and the surface
+added (seconds).
 """
 from __future__ import annotations
 
@@ -19,11 +19,11 @@ from brepose_ros.offline.symmetry import DETECTION_VERSION
 
 def cached_graph_path(step: Path, cache: Path, step_deg: float, label: str | None = None,
                       lonlat: int | None = None) -> Path:
-    """``cache/<stem>_<label>_v<FORMAT_VERSION>s<DETECTION_VERSION>.brepose.npz`` (label:
-    ``<step_deg>deg``, or ``lonlat<K>`` on the paper's grid of density ``lonlat``), the aspect
-    graph of ``step``, compiled there first if absent (module doc)."""
+    """``cache/<stem>_<label>_v<FORMAT_VERSION>s<DETECTION_VERSION>-surface.brepose.npz``
+    (label: ``<step_deg>deg``, or ``lonlat<K>`` on the paper's grid of density ``lonlat``), the
+    aspect graph of ``step``, compiled there first if absent (module doc)."""
     label = label or (f"lonlat{lonlat}" if lonlat else f"{step_deg:g}deg")
-    path = cache / f"{step.stem}_{label}_v{FORMAT_VERSION}s{DETECTION_VERSION}{SUFFIX}"
+    path = cache / f"{step.stem}_{label}_v{FORMAT_VERSION}s{DETECTION_VERSION}-surface{SUFFIX}"
     if not path.exists():
         older = sorted([*cache.glob(f"{step.stem}_{label}_v{FORMAT_VERSION}{SUFFIX}"),
                         *cache.glob(f"{step.stem}_{label}_v{FORMAT_VERSION}s*{SUFFIX}")])
@@ -32,8 +32,4 @@ def cached_graph_path(step: Path, cache: Path, step_deg: float, label: str | Non
             with_surface(with_symmetries(AspectGraph.load(older[-1]), surface), surface).save(path)
         else:
             compile_aspect_graph(step, step_deg=step_deg, lonlat=lonlat).save(path)
-    else:
-        graph = AspectGraph.load(path)
-        if graph.surface is None:  # cached before graphs held the part's surface
-            with_surface(graph, surface_mesh(load_step(step))).save(path)
     return path

@@ -14,8 +14,8 @@ Bhattacharyya coefficient of the colour histograms of two bands along it, inside
 (``band_contrast``), and by the *shading fit* (``online.appearance.shading_fit``: how much of the grey level
 over the mesh's silhouette at the pose its normals explain under some distant light, the
 spherical harmonics up to order 2, outliers such as an occluder trimmed). The silhouette is
-the mesh's rasterised at the pose (an oracle: the graph holds no mesh) or the convex hull of
-the pose's projected visible edges (what the estimator could draw). Prints, per cue: how
+the part's mesh filled at the pose (as the graph's surface now holds it) or the convex hull of
+the pose's projected visible edges (what the edges alone could draw). Prints, per cue: how
 often the refined truth beats a wrong found pose, how often a right found pose beats the
 wrong finalists of its image, and the AUC of right against wrong found poses; then the cues
 combined with the estimator's confidence in a logistic model fitted with one part left out
