@@ -53,7 +53,6 @@ from brepose_ros.aspect_graph import AspectGraph  # noqa: E402
 from brepose_ros.evaluation.metrics import (  # noqa: E402
     NOT_FOUND_ERROR_RATE, ModelPoints, evaluate_scene, scene_summary)
 from brepose_ros.offline.cad import load_step, tessellate  # noqa: E402
-from brepose_ros.online.appearance import grey_of, shading_fit  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.frame import Frame  # noqa: E402
 from brepose_ros.online.image_edges import detect_edges  # noqa: E402
@@ -362,16 +361,8 @@ def main(argv=None) -> int:
             images = range(args.start, args.start + args.n)
             cached = scene(cache, name, step, condition, images, distractors, args.look, tuple(args.span), args.seed)
 
-            def measured(image, result):
-                """The found pose's shading fit, measured beside the run (``--report --min-shading``)
-                where the estimator did not (``pose.min_shading_fit`` 0)."""
-                estimate = result.estimate
-                if estimate.found and estimate.shading_fit is None and graph.surface is not None:
-                    estimate.shading_fit = shading_fit(grey_of(image), graph.surface, estimate.R, estimate.t,
-                                                       cached.camera)
-                progress.update()
-
-            results = evaluate_scene(cached, estimator, model, on_image=measured, paper_only=args.paper_only)
+            results = evaluate_scene(cached, estimator, model, on_image=lambda *_: progress.update(),
+                                     paper_only=args.paper_only)
             rows.append({"part": name, "set": part_set(name), "condition": condition,
                          "occlusion": CONDITIONS[condition].get("occlusion", 0.0),
                          "clutter": CONDITIONS[condition].get("clutter", 0), "views": graph.n_views,

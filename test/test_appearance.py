@@ -4,7 +4,7 @@ import numpy as np
 from brepose_ros.camera import Camera
 from brepose_ros.geometry import rot_z, rotation_about
 from brepose_ros.offline.cad import load_step, tessellate
-from brepose_ros.online.appearance import grey_of, shading_fit
+from brepose_ros.online.appearance import shading_fit
 from brepose_ros.synthetic.render import Lighting, Material, Placed, render
 
 
@@ -36,10 +36,3 @@ def test_the_shading_fit_explains_a_lambertian_part_at_its_pose_and_not_at_anoth
     hidden[ys.min():ys.min() + (ys.max() - ys.min()) // 5, :] = 128
     assert shading_fit(hidden, mesh, R, t, camera) > 0.9
 
-
-def test_a_colour_image_is_fitted_on_its_luminance():
-    image = np.zeros((4, 4, 3), np.uint8)
-    image[..., 1] = 100  # green
-    assert grey_of(image).shape == (4, 4) and 55 <= grey_of(image)[0, 0] <= 62
-    grey = image[..., 1]
-    assert grey_of(grey) is grey

@@ -77,6 +77,25 @@ def test_fitting_needs_images_with_and_without_the_part():
         Calibration.fit(x[present], right[present], present[present], NAMES)
 
 
+def test_a_missing_feature_counts_as_the_fits_mean_and_a_fit_needs_every_feature():
+    """A graph without the part's surface has no shading fit: the confidence counts the
+    missing value (nan) as the fit's mean, neither for nor against the pose, where it would
+    otherwise be nan; fitting on such estimates is refused, naming the remedy."""
+    x, right, present = bench(0.5, 2000, 4)
+    fitted = Calibration.fit(x, right, present, NAMES)
+    row = np.array([[0.6, np.nan, 0.4]])
+    at_mean = np.array([[0.6, fitted.right.mean[1], 0.4]])
+    # each model fills in its own mean
+    np.testing.assert_allclose(fitted.probability(row), [fitted.present.probability(
+        [[0.6, fitted.present.mean[1], 0.4]])[0] * fitted.right.probability(at_mean)[0]])
+    assert np.isfinite(fitted.probability(row)).all()
+    assert np.isnan(features(estimate(0.8))["shading_fit"]) and features(estimate(0.8, shading_fit=0.9))[
+        "shading_fit"] == 0.9
+    x[0, 1] = np.nan
+    with pytest.raises(ValueError, match="recompile"):
+        Calibration.fit(x, right, present, NAMES)
+
+
 def test_the_expected_calibration_error_measures_the_gap():
     rng = np.random.default_rng(4)
     stated = rng.random(50000)

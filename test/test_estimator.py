@@ -405,23 +405,29 @@ def test_the_choice_replayed_on_the_candidates_is_the_estimate(bracket, estimato
 
 
 @pytest.mark.slow
-def test_the_shading_fit_is_measured_and_gates_the_found_rule_where_asked(bracket, estimator, tmp_path):
-    """With ``pose.min_shading_fit`` a clean image's right pose reports its shading fit (its
-    surface explains the grey levels: above 0.8), is found when the floor is below it and not
-    found when it is above it, the reason naming the fit; at 0 nothing is computed."""
+def test_the_shading_fit_is_measured_weighed_by_the_confidence_and_gates_the_found_rule_where_asked(
+        bracket, estimator, tmp_path):
+    """A clean image's right pose reports its shading fit (its surface explains the grey
+    levels: above 0.8), which the confidence weighs: the same estimate with the fit missing
+    (a graph without a surface) or poor is less confident. With ``pose.min_shading_fit`` the
+    pose is found when the floor is below its fit and not found when it is above it, the
+    reason naming the fit."""
     from brepose_ros.evaluation.metrics import prediction_entry
+    from brepose_ros.online.confidence import load_calibration
     from brepose_ros.online.estimator import not_found_reason
     from brepose_ros.params import EstimatorParams
 
     generate_scene(bracket[0], tmp_path / "scene", 1, seed=3, config=SceneConfig())
     scene = load_scene(tmp_path / "scene")
     image = cv2.imread(str(scene.entries[0].path), cv2.IMREAD_UNCHANGED)
-    assert estimator.estimate(image, scene.camera).shading_fit is None
+    estimate = estimator.estimate(image, scene.camera)
+    assert estimate.found and estimate.shading_fit > 0.8 and "verification" in estimate.timings
+    assert prediction_entry("a.png", estimate)["shading_fit"] == pytest.approx(estimate.shading_fit)
+    calibration = load_calibration()
+    assert calibration.confidence(estimate) == pytest.approx(estimate.confidence)
     gated = Estimator(estimator.graph, EstimatorParams().with_flat({"pose.min_shading_fit": 0.5}))
     try:
-        estimate = gated.estimate(image, scene.camera)
-        assert estimate.found and estimate.shading_fit > 0.8 and "appearance" in estimate.timings
-        assert prediction_entry("a.png", estimate)["shading_fit"] == pytest.approx(estimate.shading_fit)
+        assert gated.estimate(image, scene.camera).found
         strict = EstimatorParams().with_flat({"pose.min_shading_fit": min(1.0, estimate.shading_fit + 1e-6)})
         gated.params = strict
         refused = gated.estimate(image, scene.camera)

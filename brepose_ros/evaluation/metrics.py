@@ -167,7 +167,7 @@ def prediction_entry(image: str, estimate) -> dict:
     """One entry of the predictions JSON; for a part with near symmetries also the pose's
     ``symmetry_margin`` over its twins, whether the image left it ``ambiguous`` and whether a
     twin ties with it (``twin_tie``); where a time budget left steps out, which (``skipped``);
-    where ``pose.min_shading_fit`` asked for it, the pose's ``shading_fit``."""
+    where the aspect graph holds the part's surface, the pose's ``shading_fit``."""
     found = estimate.found
     entry = {"image": image,
              "R": np.asarray(estimate.R).ravel().tolist() if found else None,

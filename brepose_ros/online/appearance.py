@@ -35,11 +35,6 @@ MIN_PIXELS = 50
 FIT_SIZE_PX = 96.0
 
 
-def grey_of(image: np.ndarray) -> np.ndarray:
-    """(H, W) the image's grey levels: a colour image's (BGR) luminance, a grey one as it is."""
-    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-
-
 def sh_basis(normals: np.ndarray) -> np.ndarray:
     """(N, 9) the real spherical harmonics up to order 2 at unit normals (N, 3), constant
     factors dropped (the fit absorbs them)."""

@@ -62,6 +62,9 @@ FEATURES: dict[str, Callable[["Estimate"], float]] = {
     # the image's edges running on past the model's ends: a factor of the score already, at a
     # hand-set weight (scoring.RUN_ON_WEIGHT); alone it adds to the fit (docs/results/confidence.md)
     "run_on": lambda e: e.shares.run_on if e.shares else 0.0,
+    # the region's evidence beside the edges' (online/appearance.py); nan, missing, where the
+    # graph holds no surface
+    "shading_fit": lambda e: math.nan if e.shading_fit is None else e.shading_fit,
 }
 
 
@@ -105,8 +108,12 @@ class Logistic:
             raise ValueError(f"bias must be a finite number, got {self.bias!r}")
 
     def logit(self, x: np.ndarray) -> np.ndarray:
-        """The model's log-odds of rows of raw features (N, F)."""
-        z = (np.asarray(x, float) - np.asarray(self.mean)) / np.asarray(self.scale)
+        """The model's log-odds of rows of raw features (N, F); a missing feature (nan: the
+        shading fit of a graph without the part's surface) counts as the fit's mean, moving
+        the odds neither way."""
+        x = np.asarray(x, float)
+        x = np.where(np.isnan(x), np.asarray(self.mean), x)
+        z = (x - np.asarray(self.mean)) / np.asarray(self.scale)
         return self.bias + z @ np.asarray(self.weights)
 
     def probability(self, x: np.ndarray) -> np.ndarray:
@@ -121,6 +128,9 @@ class Logistic:
         from scipy.optimize import minimize
 
         x, y = np.asarray(x, float), np.asarray(y, float)
+        if not np.isfinite(x).all():
+            raise ValueError("fitting needs every feature of every estimate (a shading fit is missing where the "
+                             "aspect graph holds no surface: recompile it)")
         mean, scale = x.mean(axis=0), x.std(axis=0)
         scale[scale < 1e-9] = 1.0  # a constant feature: its weight stays 0 under the L2 term
         z = (x - mean) / scale

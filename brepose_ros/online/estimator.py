@@ -69,7 +69,7 @@ from .larger import centre_distance, larger_check_applies, larger_pose, projecte
 from . import kernels
 from .refinement import Candidate, PoseRefiner, pose_from_similarity
 from .regions import MIN_REGION_SEGMENTS, normalised_region, region_groups, segments_within
-from .appearance import grey_of, shading_fit
+from .appearance import shading_fit
 from .colour_regions import colour_places, colour_regions
 from .confidence import Calibration, load_calibration
 from .scoring import CLEAR_SCORE, Shares, edge_pairs, pose_scores, pose_shares, scored_tolerances
@@ -135,7 +135,8 @@ class Estimate:
     #: (``time_budget.TimeBudget``)
     skipped: tuple[str, ...] = ()
     #: how much of the grey level over the part's silhouette at the pose its surface explains
-    #: (``appearance.shading_fit``); None unless ``pose.min_shading_fit`` asks for it
+    #: (``appearance.shading_fit``), a feature of the confidence; None where the aspect graph
+    #: holds no surface (compiled before session 27) or no pose was verified
     shading_fit: float | None = None
 
 
@@ -268,13 +269,9 @@ class Estimator:
         if p.pose.twin_check:
             best, margin, tied = check_twins(best, self.graph, self._refiner, frame, p.pose, work.pool)
             work.lap("symmetry")
-        shading = None
-        if p.pose.min_shading_fit > 0:
-            shading = shading_fit(grey_of(image), self.graph.surface, best.R, best.t, camera)
-            work.lap("appearance")
-        work.timings["total"] = sum(work.timings.values())
         estimate = self._described(work, best, frame, margin, tied)
-        estimate.shading_fit = shading
+        work.lap("verification")
+        work.timings["total"] = sum(work.timings.values())
         work.budget.finished()
         estimate.skipped = tuple(work.budget.skipped)
         if is_found(estimate, p.pose):
@@ -363,9 +360,13 @@ class Estimator:
     def _described(self, work: ImageWork, best: Candidate, frame: Frame, margin: float | None = None,
                    tied: bool = False) -> Estimate:
         """What the estimate reports of a pose (not yet judged found): its score's shares, the
-        error ratio, its size and the confidence."""
+        error ratio, its size, the shading fit where the graph holds the part's surface and the
+        frame its grey levels, and the confidence, which weighs them all."""
         p = work.p
         pairs = edge_pairs(self.graph, best.R, best.t, frame, p)
+        shading = None
+        if self.graph.surface is not None and frame.gray is not None:
+            shading = shading_fit(frame.gray, self.graph.surface, best.R, best.t, frame.camera)
         shares, size, length = pose_shares(self.graph, best.R, best.t, frame, p.pose)
         estimate = Estimate(found=False, R=None, t=None, score=best.score, error_ratio=pairs.error_ratio,
                             view_index=self.graph.nearest_view(best.R, best.t), n_image_segments=len(frame.segments_px),
@@ -375,7 +376,7 @@ class Estimator:
                             symmetry_margin=margin, ambiguous=margin is not None and margin < p.pose.twin_margin,
                             twin_tie=tied,
                             shares=shares, size_pixels=size, model_length_pixels=length,
-                            distance=centre_distance(self.graph, best))
+                            distance=centre_distance(self.graph, best), shading_fit=shading)
         estimate.confidence = work.calibration.confidence(estimate, p.pose.prior)
         return estimate
 
@@ -534,7 +535,7 @@ def is_found(estimate: Estimate, p: PoseParams) -> bool:
     outside the working range (``pose.min_distance`` - ``max_distance``) cannot be right."""
     return (estimate.score >= p.min_score and estimate.confidence >= p.min_confidence
             and p.within_distance(estimate.distance)
-            and (p.min_shading_fit == 0 or estimate.shading_fit >= p.min_shading_fit))
+            and (p.min_shading_fit == 0 or (estimate.shading_fit or 0.0) >= p.min_shading_fit))
 
 
 def not_found_reason(estimate: Estimate, p: PoseParams) -> str:

@@ -28,6 +28,9 @@ class Frame:
     #: the bounding-box diagonals (pixels) of the connected regions of ``detect``'s ``mask``,
     #: the only places the part can lie (its colour regions); None: the whole image
     region_extents: np.ndarray | None = None
+    #: the image's grey levels (``image_edges.to_gray``), which the shading fit reads
+    #: (``appearance.shading_fit``); None: not kept
+    gray: np.ndarray | None = None
 
     @classmethod
     def of(cls, edges: ImageEdges, camera: Camera) -> "Frame":
@@ -79,7 +82,8 @@ class Frame:
               region_extents: np.ndarray | None = None) -> "Frame":
         return cls(segments_px=edges.segments, segments_n=camera.undistort(edges.segments),
                    refine_segments_n=camera.undistort(edges.refine_segments), camera=camera,
-                   evidence=evidence, edge_points_n=camera.undistort(evidence.pixels), region_extents=region_extents)
+                   evidence=evidence, edge_points_n=camera.undistort(evidence.pixels), region_extents=region_extents,
+                   gray=edges.gray)
 
 
 def region_extents(mask: np.ndarray) -> np.ndarray:

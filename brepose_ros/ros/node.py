@@ -22,7 +22,8 @@ Topics (node name ``estimator``; relative names can be remapped with ``--ros-arg
   found, score, confidence (the probability that the pose is right), error_ratio,
   view_index, image_edges, matched_pairs, nearest_pairs, symmetry_margin (-1 for a part
   without near symmetry), twin_tie, skipped (the steps ``search.time_budget_ms`` left out,
-  empty without one), shading_fit (``pose.min_shading_fit``'s measure, -1 when it is 0),
+  empty without one), shading_fit (how much of the grey level over the part's silhouette its surface
+  explains at the pose, weighed by the confidence; -1 for a graph without the surface),
   estimator_ms, latency_ms (receipt
   to answer), frames_skipped (frames received but replaced by a newer one before the worker
   got to them), frames_lost (samples the DDS reader reported lost), input_hz, and the
