@@ -192,19 +192,20 @@ class PoseParams(Ranged):
         "outscoring the whole part", 40.0, 0.0, 1000.0)
     min_score: float = doc(
         "floor of the found rule: a pose with a lower score is reported as not found, whatever its confidence "
-        "(0.45: on 192 images per part and condition, at pose.min_confidence 0.08, no lower floor finds another right "
-        "pose, and 0.55 lost 12 right tuning and 30 right leave-out poses; docs/results/confidence.md)",
+        "(0.45: on 192 images per part and condition, at pose.min_confidence 0.08 then, no lower floor finds "
+        "another right pose, and 0.55 lost 12 right tuning and 30 right leave-out poses; docs/results/confidence.md)",
         0.45, 0.0, 1.0)
     min_confidence: float = doc(
-        "a pose whose confidence (the calibrated probability that it is right, online/confidence.py) is lower is "
-        "reported as not found. The default was chosen by bench/confidence.py on the tuning parts to find at "
-        "least as many right poses as score >= 0.6 at no lower precision (docs/results/confidence.md). 0.55, the "
-        "bench's trusted rule (chosen on images 0-63), reports fewer than half the right poses; on 128 images "
-        "per part and condition nothing was chosen on (64-191) 340 of 387 of them were right (88 %, 84-91 % with "
-        "95 % confidence; 122 of 129 on parts the confidence was not fitted on) and 381 of 387 (98 %) within "
-        "ADD(-S) 0.1 d: the wrong ones are near misses (a depth 5-10 % of the diameter off, a turn of 5-10 "
-        "degrees) and half turns of near-symmetric parts. 0.8 was right 73 of 76 times there (96 %), at a "
-        "fifth of 0.55's poses", 0.08, 0.0, 1.0)
+        "a pose whose confidence (the calibrated probability that it is right, online/confidence.py, weighing the "
+        "edges' evidence and the shading fit) is lower is reported as not found. The default was chosen by "
+        "bench/confidence.py on the tuning parts to find at least as many right poses as score >= 0.6 at no lower "
+        "precision (docs/results/confidence.md). 0.55, the bench's trusted rule, reports fewer than half the "
+        "right poses: on the accuracy bench's fresh images 64-95 (960, the part always in view) 250 of 274 "
+        "right up to symmetry (91 %; 211 of 232 before the confidence weighed the shading fit), on 128 images "
+        "per part and condition of the confidence's bench (64-191, session 22's fit) 340 of 387 (88 %) and 381 "
+        "of 387 within ADD(-S) 0.1 d: the wrong ones are near misses (a depth 5-10 % of the diameter off, a "
+        "turn of 5-10 degrees) and half turns of near-symmetric parts. 0.8: 46 of 48 on the fresh 960",
+        0.09, 0.0, 1.0)
     min_shading_fit: float = doc(
         "a pose whose shading fit is lower is reported as not found: how much of the image's grey level over the "
         "part's silhouette the part's surface normals at the pose explain under some light (online/appearance.py, "

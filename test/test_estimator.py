@@ -155,9 +155,10 @@ def test_estimate_command_writes_conventions_predictions(bracket, tmp_path, caps
     predictions = json.loads(out.read_text())
     assert [p["image"] for p in predictions] == images
     for p in predictions:
-        assert set(p) == {"image", "R", "t", "score", "error_ratio", "confidence"}
+        # CONVENTIONS.md's keys, the confidence, and the shading fit of a graph holding the part's surface
+        assert set(p) == {"image", "R", "t", "score", "error_ratio", "confidence", "shading_fit"}
         assert p["R"] is None or (len(p["R"]) == 9 and len(p["t"]) == 3)
-        assert 0.0 <= p["confidence"] <= 1.0
+        assert 0.0 <= p["confidence"] <= 1.0 and p["shading_fit"] <= 1.0
 
 
 def test_estimate_command_reports_a_refused_graph(tmp_path, capsys):
@@ -412,6 +413,7 @@ def test_the_shading_fit_is_measured_weighed_by_the_confidence_and_gates_the_fou
     (a graph without a surface) or poor is less confident. With ``pose.min_shading_fit`` the
     pose is found when the floor is below its fit and not found when it is above it, the
     reason naming the fit."""
+    import dataclasses
     from brepose_ros.evaluation.metrics import prediction_entry
     from brepose_ros.online.confidence import load_calibration
     from brepose_ros.online.estimator import not_found_reason
@@ -425,6 +427,9 @@ def test_the_shading_fit_is_measured_weighed_by_the_confidence_and_gates_the_fou
     assert prediction_entry("a.png", estimate)["shading_fit"] == pytest.approx(estimate.shading_fit)
     calibration = load_calibration()
     assert calibration.confidence(estimate) == pytest.approx(estimate.confidence)
+    missing = calibration.confidence(dataclasses.replace(estimate, shading_fit=None))
+    poor = calibration.confidence(dataclasses.replace(estimate, shading_fit=0.2))
+    assert poor < missing < estimate.confidence
     gated = Estimator(estimator.graph, EstimatorParams().with_flat({"pose.min_shading_fit": 0.5}))
     try:
         assert gated.estimate(image, scene.camera).found
