@@ -123,6 +123,9 @@ NEAR_STAGES = ("rounds", "climb", "polish")
 APPEARANCE_BAND_PX = 4.0
 #: the floors of pose.min_shading_fit ``--appearance`` counts the estimates at
 SHADING_FLOORS = (0.5, 0.6, 0.7, 0.8)
+#: confidence levels whose estimates ``print_confidence`` counts: the default rule's floor, the
+#: trusted rule's, and between
+CONFIDENCE_LEVELS = (0.09, 0.3, 0.55)
 #: grey level behind the rendered objects (``--render``)
 RENDER_BACKGROUND = 40.0
 #: overlay colours (BGR): the true pose's edges, the estimate's when correct and when not
@@ -328,7 +331,8 @@ def main(argv=None) -> int:
                              support=support(edge_evidence(image, params.edges, False), truth_px, tolerance),
                              explained=seen.evidence.shares(truth_px, tolerance, params.pose.min_margin_pixels,
                                                             seen_tolerance_px=params.pose.seen_pixels).explained,
-                             size=size, seconds=seconds, in_range=bool(
+                             size=size, seconds=seconds, confidence=float(estimate.confidence),
+                             shading_fit=estimate.shading_fit, in_range=bool(
                                  near_end <= np.linalg.norm(target.t) <= far_end or far_end == 0),
                              colour_support=support(edge_evidence(image, params.edges, True), truth_px, tolerance)))
             correct = rows[-1]["correct"]
@@ -406,6 +410,7 @@ def report(rows: list[dict], args, params: EstimatorParams) -> None:
                  for k in range(len(NEAR_STAGES))]
         print(f"| {NAMES[obj] if obj else '**all**'} | " + " | ".join(cells) + " |")
     print_ceilings(rows, args.objects)
+    print_confidence(rows)
     per_image = [sum(r["seconds"] for r in rows if r["frame"] == f) for f in sorted({r["frame"] for r in rows})]
     print(f"\ntime per image (all its targets): median {np.median(per_image):.1f} s; "
           f"per estimate: median {np.median([r['seconds'] for r in rows]):.2f} s")
@@ -414,6 +419,26 @@ def report(rows: list[dict], args, params: EstimatorParams) -> None:
         f"{name} {np.median([r['timings'].get(name, 0.0) for r in rows]):.2f}" for name in stages))
     print("published RGB-only figures on the whole LM-O test set: " +
           "; ".join(f"{name} {value}" for name, value in PUBLISHED))
+
+
+def print_confidence(rows: list[dict]) -> None:
+    """Does the confidence tell the right estimates from the wrong ones on the photos? The AUC
+    of right against wrong estimates by the confidence and by the score, and how many
+    estimates at a few confidence levels are right (runs recorded since session 28)."""
+    from scipy.stats import mannwhitneyu
+
+    rows = [r for r in rows if "confidence" in r and r["R"] is not None]
+    right = np.array([r["correct"] for r in rows], bool)
+    if not right.any() or right.all():
+        return
+    print(f"\nThe confidence on the photos ({len(rows)} estimates, {right.sum()} right; pose.prior as run)")
+    for name in ("confidence", "score"):
+        values = np.array([r[name] for r in rows])
+        auc = mannwhitneyu(values[right], values[~right]).statistic / (right.sum() * (~right).sum())
+        print(f"- AUC right vs wrong by the {name}: {auc:.2f}")
+    for level in CONFIDENCE_LEVELS:
+        kept = np.array([r["confidence"] >= level for r in rows])
+        print(f"- confidence >= {level:g}: {int((kept & right).sum())} right of {int(kept.sum())}")
 
 
 def print_ceilings(rows: list[dict], objects) -> None:

@@ -50,10 +50,16 @@ def import_commit(commit: str, into: Path) -> str:
 
 
 def version(package: str):
-    """(AspectGraph, Estimator, load_scene) of one version of the package."""
+    """(AspectGraph, Estimator, load_scene, default parameters) of one version of the package.
+    The parameters name the version's own shipped calibration: the package finds it under
+    the name ``brepose_ros``, which for the extracted base is this worktree's (whose features
+    the base may not know)."""
+    params = importlib.import_module(f"{package}.params").EstimatorParams()
+    shipped = Path(importlib.import_module(package).__file__).parent / "confidence.yaml"
     return (importlib.import_module(f"{package}.aspect_graph").AspectGraph,
             importlib.import_module(f"{package}.online.estimator").Estimator,
-            importlib.import_module(f"{package}.scene_folder").load_scene)
+            importlib.import_module(f"{package}.scene_folder").load_scene,
+            params.with_flat({"pose.confidence_file": str(shipped)}))
 
 
 def main(argv=None) -> int:
@@ -74,9 +80,9 @@ def main(argv=None) -> int:
             mesh = tessellate(load_step(step))
             model = ModelPoints.from_mesh(mesh.vertices, mesh.triangles)
             estimators = {}
-            for label, (graph_class, estimator_class, load_scene) in versions.items():
+            for label, (graph_class, estimator_class, load_scene, params) in versions.items():
                 graph = graph_class.load(cached_graph_path(step, cache, 5.0))
-                estimators[label] = (graph, estimator_class(graph), load_scene)
+                estimators[label] = (graph, estimator_class(graph, params), load_scene)
             for condition in args.conditions:
                 folder = scene_path(cache, name, condition)
                 # each version reads the scene with its own scene_folder, once per condition
