@@ -25,10 +25,10 @@ one finding the most right poses with recall and precision at least today's (sco
 confidence's calibration at several shares of images holding the part (``pose.prior``).
 Refit after any change to what the estimator finds:
 
-    nice -n 5 python bench/confidence.py --n 8 --check-parts motor1_holder shaft flange \
+    nice -n 5 python bench/confidence.py --n 24 --check-parts motor1_holder shaft flange \
         --records docs/results/confidence_records.json --fit brepose_ros/confidence.yaml \
         --features score confirmed explained log_insignificance error_ratio twin_margin ambiguous log_size \
-        log_model_length run_on --confidence-plot docs/figures/found_rule.png \
+        log_model_length run_on shading_fit --confidence-plot docs/figures/found_rule.png \
         --plot docs/figures/precision_recall.png
 
 and set the printed rule in brepose_ros/params.py. Scenes and graphs are shared with
