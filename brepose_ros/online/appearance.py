@@ -10,7 +10,8 @@ highlight, a reflection): near 1 where the normals at the pose are the part's, l
 wrong pose lays the silhouette over other faces, the background or clutter. On bench images
 it told right found poses from wrong ones better than the edge evidence (AUC 0.87 against
 0.75 for the confidence), and on the LM-O photos it preferred the truth to 136 of 171 wrong
-estimates, the edge score to 48 (docs/results/verification.md, session 27).
+estimates, the edge score to 48 (docs/results/verification.md, session 27). The confidence
+weighs it (``confidence.FEATURES``), and ``pose.min_shading_fit`` may floor it.
 
 Needs the part's surface in the aspect graph (``AspectGraph.surface``: graphs compiled since
 session 27); a pose costs a few milliseconds (the part rasterised at about ``FIT_SIZE_PX``
