@@ -359,9 +359,9 @@ def main(argv=None) -> int:
         for condition in args.conditions:
             progress.set_postfix_str(f"{name}: {condition}")
             images = range(args.start, args.start + args.n)
-            cached = scene(cache, name, step, condition, images, distractors, args.look, tuple(args.span), args.seed)
-
-            results = evaluate_scene(cached, estimator, model, on_image=lambda *_: progress.update(),
+            results = evaluate_scene(scene(cache, name, step, condition, images, distractors, args.look,
+                                           tuple(args.span), args.seed),
+                                     estimator, model, on_image=lambda *_: progress.update(),
                                      paper_only=args.paper_only)
             rows.append({"part": name, "set": part_set(name), "condition": condition,
                          "occlusion": CONDITIONS[condition].get("occlusion", 0.0),
