@@ -32,7 +32,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.optimize import minimize
 from scipy.stats import mannwhitneyu
 
 REPO = Path(__file__).resolve().parents[1]
@@ -46,6 +45,7 @@ from brepose_ros.camera import Camera  # noqa: E402
 from brepose_ros.evaluation.metrics import ModelPoints, pose_errors  # noqa: E402
 from brepose_ros.offline.cad import Mesh, load_step, tessellate  # noqa: E402
 from brepose_ros.online.appearance import shading_fit  # noqa: E402
+from brepose_ros.online.confidence import Logistic  # noqa: E402
 from brepose_ros.online.estimator import Estimator  # noqa: E402
 from brepose_ros.online.scoring import pose_surprises, visible_rows  # noqa: E402
 
@@ -136,19 +136,6 @@ def tables(images: list[dict]) -> None:
         print(f"| {cue} | {truth_wins} of {pairs} | {final_wins} of {finalist_pairs} | {auc(values, right):.2f} |")
 
 
-def logistic_fit(X: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Weights (bias first) of a logistic model of ``y`` on standardised ``X``, lightly ridged."""
-    Z = np.c_[np.ones(len(X)), X]
-    signs = 2.0 * y - 1.0
-
-    def loss(w):
-        margin = signs * (Z @ w)
-        return np.sum(np.logaddexp(0.0, -margin)) + 0.01 * w @ w, \
-            -Z.T @ (signs * np.exp(-np.logaddexp(0.0, margin))) + 0.02 * w
-
-    return minimize(loss, np.zeros(Z.shape[1]), jac=True).x
-
-
 def combined_tables(images: list[dict]) -> None:
     """Can the cues, combined with the estimator's confidence, tell right found poses from
     wrong ones on parts they were not fitted on? Per cue set, a logistic model fitted on every
@@ -166,9 +153,8 @@ def combined_tables(images: list[dict]) -> None:
         predicted = np.zeros(len(finals))
         for part in np.unique(parts):
             fit = parts != part
-            mean, spread = X[fit].mean(axis=0), X[fit].std(axis=0) + 1e-9
-            w = logistic_fit((X[fit] - mean) / spread, right[fit])
-            predicted[~fit] = np.c_[np.ones((~fit).sum()), (X[~fit] - mean) / spread] @ w
+            # lightly ridged: 0.01 on the summed log-loss, as the figures of verification.md were made
+            predicted[~fit] = Logistic.fit(X[fit], right[fit], l2=0.01 / fit.sum()).logit(X[~fit])
         kept_right = np.cumsum(right[np.argsort(-predicted)])
         precise = kept_right / np.arange(1, len(right) + 1) >= 0.95
         print(f"| {' + '.join(cues)} | {auc(predicted, right):.2f} | "
