@@ -425,7 +425,7 @@ def print_confidence(rows: list[dict]) -> None:
     """Does the confidence tell the right estimates from the wrong ones on the photos? The AUC
     of right against wrong estimates by the confidence and by the score, and how many
     estimates at a few confidence levels are right (runs recorded since session 28)."""
-    from scipy.stats import mannwhitneyu
+    from bench.silhouette_contrast import auc
 
     rows = [r for r in rows if "confidence" in r and r["R"] is not None]
     right = np.array([r["correct"] for r in rows], bool)
@@ -433,9 +433,7 @@ def print_confidence(rows: list[dict]) -> None:
         return
     print(f"\nThe confidence on the photos ({len(rows)} estimates, {right.sum()} right; pose.prior as run)")
     for name in ("confidence", "score"):
-        values = np.array([r[name] for r in rows])
-        auc = mannwhitneyu(values[right], values[~right]).statistic / (right.sum() * (~right).sum())
-        print(f"- AUC right vs wrong by the {name}: {auc:.2f}")
+        print(f"- AUC right vs wrong by the {name}: {auc(np.array([r[name] for r in rows]), right):.2f}")
     for level in CONFIDENCE_LEVELS:
         kept = np.array([r["confidence"] >= level for r in rows])
         print(f"- confidence >= {level:g}: {int((kept & right).sum())} right of {int(kept.sum())}")
