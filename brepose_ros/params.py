@@ -211,10 +211,10 @@ class PoseParams(Ranged):
         "part's silhouette the part's surface normals at the pose explain under some light (online/appearance.py, "
         "about 3 ms an image); it needs an aspect graph holding the part's surface (compiled since session 27: "
         "recompile an older one). 0: no floor (the confidence weighs the fit either way). On 960 fresh bench "
-        "images (64-95): with pose.min_confidence "
-        "0.55, 0.7 reports 207 of 218 right up to symmetry (95 %) against 210 of 230 (91 %), chosen on images "
-        "64-79 and 74 of 78 against 77 of 86 on 80-95; at the default found rule 0.6 drops 48 of 167 wrong "
-        "poses and 6 of 402 right ones. A silhouette of one evenly lit face has little to explain and fits low "
+        "images (64-95), on top of the confidence that weighs it: with pose.min_confidence 0.55, 0.7 reports "
+        "246 of 261 right up to symmetry (94 %) against 250 of 274 (91 %); at the default found rule 0.6 drops "
+        "30 of 186 wrong poses and 6 of 413 right ones (session 28; 0.7 was chosen on images 64-79 in session "
+        "27). A silhouette of one evenly lit face has little to explain and fits low "
         "at the truth too (docs/results/verification.md)", 0.0, 0.0, 1.0)
     prior: float = doc(
         "how often the part is in view, as a share of the images (1: always); the confidence is moved by Bayes' "
