@@ -3,7 +3,7 @@ the seed paper's Fig. 9 (error rate against occlusion) as this project measures 
 
     python bench/plot_accuracy.py data/bench/results/accuracy_default.json
     python bench/plot_accuracy.py tetrad=data/bench/results/accuracy_tetrad.json \\
-        search=data/bench/results/accuracy_search.json both=...json [--metric add_s] [--out FIG.png]
+        search=data/bench/results/accuracy_search.json both=...json [--metric success_sym|add_s] [--out FIG.png]
 
 Each argument is a results JSON of ``bench/accuracy.py`` (or any file of the same layout,
 e.g. a peer's), optionally prefixed ``LABEL=``; without a label the file's own is used, and
@@ -24,13 +24,14 @@ sys.path.insert(0, str(REPO))
 from brepose_ros.evaluation.figures import pyplot, save_figure  # noqa: E402
 
 METRICS = {"success": ("success", "success (rot < 5 deg, t < 5 % d)"),
+           "success_sym": ("success_sym", "success up to exact symmetry"),
            "add_s": ("add_s", "ADD-S < 0.1 d")}
 SETS = ("tune", "leave-out")
 
 
 def rate(images: list[dict], metric: str) -> float:
-    if metric == "success":
-        hits = sum(bool(i.get("success", False)) for i in images)
+    if metric in ("success", "success_sym"):
+        hits = sum(bool(i.get(metric, False)) for i in images)
     else:
         hits = sum(i.get("add_s", 1.0) < 0.1 for i in images)
     return hits / len(images) if images else float("nan")

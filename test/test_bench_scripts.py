@@ -60,6 +60,21 @@ def test_compare_runs_counts_righted_and_lost_images_and_tests_their_split(tmp_p
     assert "sign test: 10 righted, 2 lost, two-sided p = 0.039" in out
 
 
+def test_the_occlusion_plot_pools_a_part_set_and_counts_the_metric_asked():
+    from bench.plot_accuracy import curve
+
+    def row(part, part_set, condition, occlusion, clutter, flags):
+        return {"part": part, "set": part_set, "condition": condition, "occlusion": occlusion, "clutter": clutter,
+                "images": [{"success": strict, "success_sym": up_to_symmetry} for strict, up_to_symmetry in flags]}
+
+    rows = [row("a", "leave-out", "clean", 0.0, 0, [(True, True), (False, True)]),
+            row("a", "leave-out", "clutter", 0.0, 4, [(False, False), (False, True)]),
+            row("b", "leave-out", "occl30+clutter", 0.3, 4, [(False, True), (False, False)]),
+            row("c", "tune", "clean", 0.0, 0, [(True, True)])]
+    assert curve(rows, "leave-out", "success") == ([0.0, 30.0], [0.0, 0.0], 0.5)
+    assert curve(rows, "leave-out", "success_sym") == ([0.0, 30.0], [0.5, 0.5], 1.0)
+
+
 def test_an_operating_point_counts_right_and_wrong_found_poses_and_times_every_image():
     from bench.speed_accuracy import operating_point
 
