@@ -3,6 +3,7 @@
     python bench/peer_linemod.py                      # sharp_bracket, 12 clean images
     python bench/peer_linemod.py --occluded           # + 12 images with 30 % occlusion, clutter
     python bench/peer_linemod.py --part rounded_bracket --images 20 --peer-step 7.5
+    python bench/peer_linemod.py --bench --n 16 --start 64 --label line2d   # bench/accuracy.py's scenes
 
 (run with the project venv: ``env -u _ROS_WHEELS_BOOTSTRAP_COMPLETE -u LD_LIBRARY_PATH
 .venv/bin/python bench/peer_linemod.py``.)
@@ -28,6 +29,11 @@ the project's opencv-python-headless, so this script plays two roles:
    look); it writes predictions JSON (CONVENTIONS.md) with per-image times.
 
 The project role then scores both with ``evaluation.pose_errors`` and prints one table.
+
+With ``--bench`` LINE-2D runs instead on ``bench/accuracy.py``'s own scenes (its parts, varied
+look, conditions and image range, templates per part for the bench's span of sizes) and its
+results go to ``data/bench/results/accuracy_LABEL.json`` in that script's layout, so that
+``bench/plot_accuracy.py`` draws the peer beside the estimator's runs (issue 11's Fig. 9).
 Every file goes under ``--out`` (default data/peer, git-ignored): scenes, graph, templates
 (reused when their parameters match) and per-run predictions / summary.json.
 
@@ -146,7 +152,7 @@ def peer_main(args) -> int:
         scene = Path(scene)
         gt = json.loads((scene / "gt.json").read_text())
         predictions = []
-        for entry in gt:
+        for entry in gt[args.first:None if args.count is None else args.first + args.count]:
             image = cv2.imread(str(scene / entry["image"]), cv2.IMREAD_UNCHANGED)
             t0 = time.perf_counter()  # as for ours: from the decoded image to the pose
             if down > 1:
@@ -240,6 +246,53 @@ def ensure_scene(step: Path, folder: Path, n: int, seed: int, config) -> None:
 def _sha(path: Path) -> str:
     from brepose_ros.aspect_graph import file_sha256
     return file_sha256(path)
+
+
+def bench_main(args) -> int:
+    """LINE-2D on bench/accuracy.py's scenes, its results in that script's layout."""
+    sys.path.insert(0, str(ROOT))
+    from bench import accuracy
+    from brepose_ros.evaluation.metrics import pose_errors
+    from brepose_ros.synthetic.scenes import SceneConfig
+
+    python = peer_python(Path(args.peer_venv))
+    cache = ROOT / "data" / "bench"
+    distractors = accuracy.distractor_meshes(cache)
+    images = range(args.start, args.start + args.n)
+    rows = []
+    for name, step in accuracy.bench_steps(args.bench_parts or list(accuracy.PARTS), cache).items():
+        graph, model = accuracy.graph_and_model(step, cache)
+        config = SceneConfig(span=accuracy.SPAN, look="varied")
+        templates = Path(args.out) / "templates" / f"{name}-{args.peer_step:g}deg-{args.scales}scales-x{args.downscale}"
+        render_templates(step, templates, args.peer_step, args.scales, config, args.downscale)
+        scenes = {c: accuracy.scene(cache, name, step, c, images, distractors) for c in args.conditions}
+        folders = [accuracy.scene_path(cache, name, c) for c in args.conditions]
+        output = templates / f"matches-{args.start}-{args.n}.json"
+        subprocess.run([str(python), str(Path(__file__).resolve()), "--role", "peer", "--templates", str(templates),
+                        "--output", str(output), "--threshold", str(args.threshold),
+                        "--inplane-step", str(args.inplane_step), "--top-k", "1", "--first", str(args.start),
+                        "--count", str(args.n), "--scene", *map(str, folders)], env=CLEAN_ENV, check=True)
+        for condition, result in zip(args.conditions, json.loads(output.read_text())["results"]):
+            truth = {e.image: e for e in scenes[condition].entries}
+            records = []
+            for p in result["predictions"]:
+                record = {"image": p["image"], "found": p["R"] is not None, "score": p["score"],
+                          "ms": 1000.0 * p["seconds"]}
+                if p["R"] is not None:
+                    e = truth[p["image"]]
+                    record |= pose_errors(np.reshape(p["R"], (3, 3)), np.array(p["t"]), e.R, e.t, model, graph).to_dict()
+                records.append(record)
+            rows.append({"part": name, "set": accuracy.part_set(name), "condition": condition,
+                         **{k: accuracy.CONDITIONS[condition].get(k, 0) for k in ("occlusion", "clutter")},
+                         "images": records})
+            hits = sum(r.get("success", False) for r in records)
+            print(f"LINE-2D {name} {condition}: {hits} of {len(records)} right", flush=True)
+    out = cache / "results" / f"accuracy_{args.label}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"label": args.label, "look": "varied", "command": " ".join(sys.argv),
+                               "method": "LINE-2D (cv2.linemod)", "rows": rows}, indent=1) + "\n")
+    print(f"wrote {out}")
+    return 0
 
 
 def template_sizes(config, scales: int) -> np.ndarray:
@@ -497,9 +550,21 @@ def main(argv=None) -> int:
     p.add_argument("--templates", help=argparse.SUPPRESS)
     p.add_argument("--scene", nargs="*", help=argparse.SUPPRESS)
     p.add_argument("--output", help=argparse.SUPPRESS)
+    p.add_argument("--first", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--count", type=int, help=argparse.SUPPRESS)
     p.add_argument("--top-k", type=int, default=10, help="LINE-2D candidates kept per image (for the oracle row)")
+    bench = p.add_argument_group("--bench: LINE-2D alone on bench/accuracy.py's scenes")
+    bench.add_argument("--bench", action="store_true")
+    bench.add_argument("--bench-parts", nargs="*", help="bench parts (default: all of bench/accuracy.py's)")
+    bench.add_argument("--conditions", nargs="*", default=["clean", "clutter", "occl10+clutter", "occl20+clutter",
+                                                            "occl30+clutter", "occl40+clutter", "occl50+clutter"])
+    bench.add_argument("--n", type=int, default=16, help="images per part and condition")
+    bench.add_argument("--start", type=int, default=64, help="first image index (64: the fresh images)")
+    bench.add_argument("--label", default="line2d", help="names data/bench/results/accuracy_LABEL.json")
     args = p.parse_args(argv)
-    return peer_main(args) if args.role == "peer" else project_main(args)
+    if args.role == "peer":
+        return peer_main(args)
+    return bench_main(args) if args.bench else project_main(args)
 
 
 if __name__ == "__main__":
