@@ -83,7 +83,7 @@ class WatchedEstimator(FakeEstimator):
     """A slow FakeEstimator that records every parameter hand-over made while it was estimating."""
 
     def __init__(self, graph, params):
-        self.busy, self.changed_while_busy, self.handovers = False, [], 0
+        self.busy, self.changed_while_busy = False, []
         super().__init__(graph, params, delay=0.3)
 
     @property
@@ -94,7 +94,6 @@ class WatchedEstimator(FakeEstimator):
     def params(self, value):
         if getattr(self, "busy", False):
             self.changed_while_busy.append(value)
-        self.handovers += 1
         self._params = value
 
     def estimate(self, image, camera, frame=None):
