@@ -33,8 +33,9 @@ Each stage lives in its own module; this one only wires them:
 7. ``scoring``: the error ratio and the score's shares at the pose; ``appearance``: the
    shading fit over its silhouette where the graph holds the part's surface;
    ``confidence``: from both, the probability that the pose is right where the part is in
-   view in a share ``pose.prior`` of the images; found (``is_found``) if the score passes its floor ``pose.min_score`` and
-   the confidence ``pose.min_confidence`` and its model centre lies within the working range
+   view in a share ``pose.prior`` of the images; found (``is_found``) if the score passes
+   its floor ``pose.min_score`` and the confidence ``pose.min_confidence`` and its model
+   centre lies within the working range
    ``pose.min_distance`` - ``pose.max_distance`` (when given; the search then tries only the
    part's sizes in that range, and the candidates and finalists outside it are dropped)
 
