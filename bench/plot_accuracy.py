@@ -73,7 +73,7 @@ def main(argv=None) -> int:
     fig, axes = plt.subplots(1, len(SETS), figsize=(5.2 * len(SETS), 4.0), sharey=True)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, part_set in zip(axes, SETS):
-        for (label, rows), colour in zip(runs, colours):
+        for k, ((label, rows), colour) in enumerate(zip(runs, colours)):
             xs, ys, clean = curve(rows, part_set, key)
             if not xs:
                 continue
@@ -81,7 +81,8 @@ def main(argv=None) -> int:
             n_parts = len({r["part"] for r in chosen})
             per_part = sum(len(r["images"]) for r in chosen) // max(n_parts, 1)
             ax.plot(xs, ys, "o-", color=colour, label=f"{label} ({n_parts} parts, {per_part} images each)")
-            ax.plot([-5], [clean], "s", color=colour, markerfacecolor="none")
+            # the clean markers side by side, so that equal rates do not hide one another
+            ax.plot([-5 + 1.2 * (k - (len(runs) - 1) / 2)], [clean], "s", color=colour, markerfacecolor="none")
         ax.set_title(f"{part_set} parts")
         ax.set_xlabel("occlusion with clutter (%)   [square: clean]")
         ax.set_xticks([-5, 0, 10, 20, 30, 40, 50], ["clean", "0", "10", "20", "30", "40", "50"])
@@ -90,7 +91,7 @@ def main(argv=None) -> int:
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize=8)
     axes[0].set_ylabel(axis_label)
-    first = runs[0][1]
+    first = json.loads(Path(args.results[0].rpartition("=")[2]).read_text())
     fig.suptitle(f"bench/accuracy.py, {first.get('look', '?')} look, commit {first.get('commit', '?')}", fontsize=9)
     save_figure(fig, args.out, dpi=90)
     print(f"wrote {args.out}", file=sys.stderr)

@@ -75,6 +75,24 @@ def test_the_occlusion_plot_pools_a_part_set_and_counts_the_metric_asked():
     assert curve(rows, "leave-out", "success_sym") == ([0.0, 30.0], [0.5, 0.5], 1.0)
 
 
+def test_the_occlusion_plot_is_drawn_from_runs_split_by_part(tmp_path):
+    import json
+
+    from bench.plot_accuracy import main
+
+    def run(name, part_set):
+        images = [{"success": True, "success_sym": True}, {"success": False}]
+        rows = [{"part": name, "set": part_set, "condition": c, "occlusion": o, "clutter": k, "images": images}
+                for c, o, k in (("clean", 0.0, 0), ("clutter", 0.0, 4), ("occl30+clutter", 0.3, 4))]
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps({"label": name, "look": "varied", "commit": "abc1234", "rows": rows}))
+        return path
+
+    figure = tmp_path / "figure.png"
+    assert main([f"both={run('a', 'tune')}", f"both={run('b', 'leave-out')}", "--out", str(figure)]) == 0
+    assert figure.stat().st_size > 1000
+
+
 def test_an_operating_point_counts_right_and_wrong_found_poses_and_times_every_image():
     from bench.speed_accuracy import operating_point
 
