@@ -1,6 +1,6 @@
 """A known working distance (``pose.min_distance`` / ``max_distance``) against none, image by image.
 
-    python bench/known_distance.py [--n 6] [--ratios 1.25 1.5] [--parts sharp_bracket ...]
+    python bench/known_distance.py [--n 6] [--start 64] [--ratios 1.25 1.5] [--parts sharp_bracket ...]
                                    [--conditions clean clutter occl30+clutter] [--label NAME]
 
 Each image is estimated at default parameters and, for each RATIO, with the working range
@@ -41,7 +41,7 @@ def setting_label(ratio: float) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_scene_arguments(parser, n=6, parts=TUNING, conditions=["clean", "clutter", "occl30+clutter"])
+    add_scene_arguments(parser, n=6, parts=TUNING, conditions=["clean", "clutter", "occl30+clutter"], start=True)
     parser.add_argument("--ratios", type=float, nargs="+", default=[1.25, 1.5])
     parser.add_argument("--label", default="run")
     args = parser.parse_args(argv)
@@ -58,7 +58,7 @@ def main(argv=None) -> int:
         estimator = Estimator(graph, default)
         for condition in args.conditions:
             scene = load_scene(scene_path(cache, name, condition))
-            for i, entry in enumerate(scene.entries[:args.n]):
+            for i, entry in enumerate(scene.entries[args.start:args.start + args.n], start=args.start):
                 image = cv2.imread(str(entry.path), cv2.IMREAD_UNCHANGED)
                 distance = float(np.linalg.norm(entry.R @ graph.model_center + entry.t))
                 row = {"set": part_set(name), "part": name, "condition": condition, "image": i}
