@@ -201,6 +201,13 @@ def distractor_meshes(cache: Path) -> list:
     return [tessellate(load_step(step)) for step in steps if step is not None]
 
 
+def row_fields(name: str, condition: str) -> dict:
+    """The fields that place a results row (one part in one condition), which
+    ``bench/plot_accuracy.py`` and ``--report`` pool by."""
+    return {"part": name, "set": part_set(name), "condition": condition,
+            "occlusion": CONDITIONS[condition].get("occlusion", 0.0), "clutter": CONDITIONS[condition].get("clutter", 0)}
+
+
 def image_record(result) -> dict:
     e = result.errors
     record = {"image": result.image, "found": e is not None, "score": float(result.estimate.score),
@@ -363,10 +370,9 @@ def main(argv=None) -> int:
                                            tuple(args.span), args.seed),
                                      estimator, model, on_image=lambda *_: progress.update(),
                                      paper_only=args.paper_only)
-            rows.append({"part": name, "set": part_set(name), "condition": condition,
-                         "occlusion": CONDITIONS[condition].get("occlusion", 0.0),
-                         "clutter": CONDITIONS[condition].get("clutter", 0), "views": graph.n_views,
-                         "summary": scene_summary(results), "images": [image_record(r) for r in results]})
+            rows.append(row_fields(name, condition) | {
+                "views": graph.n_views, "summary": scene_summary(results),
+                "images": [image_record(r) for r in results]})
             out.write_text(json.dumps(run, indent=1) + "\n")
         estimator.close()
     progress.close()

@@ -266,12 +266,12 @@ def bench_main(args) -> int:
         templates = Path(args.out) / "templates" / f"{name}-{args.peer_step:g}deg-{args.scales}scales-x{args.downscale}"
         render_templates(step, templates, args.peer_step, args.scales, config, args.downscale)
         scenes = {c: accuracy.scene(cache, name, step, c, images, distractors) for c in args.conditions}
-        folders = [accuracy.scene_path(cache, name, c) for c in args.conditions]
         output = templates / f"matches-{args.start}-{args.n}.json"
         subprocess.run([str(python), str(Path(__file__).resolve()), "--role", "peer", "--templates", str(templates),
                         "--output", str(output), "--threshold", str(args.threshold),
                         "--inplane-step", str(args.inplane_step), "--top-k", "1", "--first", str(args.start),
-                        "--count", str(args.n), "--scene", *map(str, folders)], env=CLEAN_ENV, check=True)
+                        "--count", str(args.n), "--scene", *(str(scenes[c].folder) for c in args.conditions)],
+                       env=CLEAN_ENV, check=True)
         for condition, result in zip(args.conditions, json.loads(output.read_text())["results"]):
             truth = {e.image: e for e in scenes[condition].entries}
             records = []
@@ -282,9 +282,7 @@ def bench_main(args) -> int:
                     e = truth[p["image"]]
                     record |= pose_errors(np.reshape(p["R"], (3, 3)), np.array(p["t"]), e.R, e.t, model, graph).to_dict()
                 records.append(record)
-            rows.append({"part": name, "set": accuracy.part_set(name), "condition": condition,
-                         **{k: accuracy.CONDITIONS[condition].get(k, 0) for k in ("occlusion", "clutter")},
-                         "images": records})
+            rows.append(accuracy.row_fields(name, condition) | {"images": records})
             hits = sum(r.get("success", False) for r in records)
             print(f"LINE-2D {name} {condition}: {hits} of {len(records)} right", flush=True)
     out = cache / "results" / f"accuracy_{args.label}.json"

@@ -49,13 +49,19 @@ def curve(rows: list[dict], part_set: str, metric: str) -> tuple[list[float], li
     return xs, ys, rate(clean, metric)
 
 
+def labelled(argument: str) -> tuple[str, Path]:
+    """``[LABEL=]results.json`` as (label, empty without one; path)."""
+    label, _, path = argument.rpartition("=")
+    return label, Path(path)
+
+
 def load_runs(arguments: list[str]) -> dict[str, list[dict]]:
     """{label: rows} of ``[LABEL=]results.json`` arguments, the rows of one label's files
     merged (a run split by part); without a label, the file's own."""
     runs: dict[str, list[dict]] = {}
     for item in arguments:
-        label, _, path = item.rpartition("=")
-        data = json.loads(Path(path).read_text())
+        label, path = labelled(item)
+        data = json.loads(path.read_text())
         label = label or data.get("label", Path(path).stem)
         runs[label] = runs.get(label, []) + data["rows"]
     return runs
@@ -91,7 +97,7 @@ def main(argv=None) -> int:
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize=8)
     axes[0].set_ylabel(axis_label)
-    first = json.loads(Path(args.results[0].rpartition("=")[2]).read_text())
+    first = json.loads(labelled(args.results[0])[1].read_text())  # its look and commit name the figure
     fig.suptitle(f"bench/accuracy.py, {first.get('look', '?')} look, commit {first.get('commit', '?')}", fontsize=9)
     save_figure(fig, args.out, dpi=90)
     print(f"wrote {args.out}", file=sys.stderr)
