@@ -3,8 +3,9 @@ import numpy as np
 
 from brepose_ros.camera import Camera
 from brepose_ros.geometry import rot_z, rotation_about
-from brepose_ros.offline.cad import load_step, tessellate
-from brepose_ros.online.appearance import shading_fit
+from brepose_ros.offline.cad import Mesh, load_step, tessellate
+from brepose_ros.online.appearance import MIN_PIXELS, shading_fit
+from brepose_ros.raster import Posed, rasterize
 from brepose_ros.synthetic.render import Lighting, Material, Placed, render
 
 
@@ -37,21 +38,15 @@ def test_the_shading_fit_explains_a_lambertian_part_at_its_pose_and_not_at_anoth
     assert shading_fit(hidden, mesh, R, t, camera) > 0.9
 
 
-
 def test_a_face_seen_square_on_has_one_normal_and_explains_nothing_but_its_mean():
     """A flat plate facing the camera gives every pixel of its silhouette the same normal, so
     the harmonics span only a constant (the normal equations are singular): the fit is the
     least-norm one, the mean, and explains none of a noisy image's spread, without failing."""
-    from brepose_ros.offline.cad import Mesh
-
     half = 0.02
     vertices = np.array([[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]])
     plate = Mesh(vertices, np.array([[0, 2, 1], [0, 3, 2]], np.int32), np.tile([0.0, 0.0, -1.0], (4, 1)))
     camera = Camera(600.0, 600.0, 160.0, 120.0, 320, 240)
     image = np.random.default_rng(2).uniform(0, 255, (240, 320)).astype(np.float32)
-    from brepose_ros.online.appearance import MIN_PIXELS
-    from brepose_ros.raster import Posed, rasterize
-
     R, t = np.eye(3), np.array([0.0, 0.0, 0.3])
     assert len(rasterize(camera, [Posed(plate, R, t)]).pixels) > 10 * MIN_PIXELS  # seen, so fitted
     fit = shading_fit(image, plate, R, t, camera)
